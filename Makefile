@@ -1,0 +1,41 @@
+# Every target that runs code depends on `setup`, so a fresh clone needs no manual steps.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+SCENE ?= campsite
+# Extra arguments for `dualnerf run`, e.g. ARGS="--jobs 2 --set edit.iterations=400".
+ARGS ?=
+# The local CPU wheel of torch 2.13.0; the constraint stops any dependency from upgrading it to a CUDA build.
+PIP_CONSTRAINT_FILE := $(VENV)/constraints.txt
+
+.PHONY: setup test smoke ablation bench lint clean-venv
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	echo "torch==2.13.0" > $(PIP_CONSTRAINT_FILE)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -c $(PIP_CONSTRAINT_FILE) -e '.[models,ray,dev]'
+	touch $(STAMP)
+
+test: setup
+	$(BIN)/python -m pytest -q
+	$(MAKE) smoke
+
+smoke: setup
+	$(BIN)/dualnerf run workflows/smoke.toml --reports reports/smoke $(ARGS)
+	$(BIN)/python -m stages.check_smoke reports/smoke
+
+ablation: setup
+	$(BIN)/dualnerf run workflows/ablation.toml --set scene=$(SCENE) --reports reports/$(SCENE) $(ARGS)
+
+bench: setup
+	$(BIN)/python -m benchmarks
+
+lint: setup
+	$(BIN)/ruff check pipeline stages dualnerf tests benchmarks
+
+clean-venv:
+	rm -rf $(VENV)

@@ -1,0 +1,1 @@
+"""Generic engine for content-addressed, resumable pipeline steps. Imports nothing model-specific."""
