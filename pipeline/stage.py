@@ -41,6 +41,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
+from pipeline.errors import UserError
+
 
 @dataclass(frozen=True)
 class Resources:
@@ -95,8 +97,9 @@ class Stage(ABC):
         """Compute the result into `ctx.out_dir`."""
 
 
-class ParamsError(ValueError):
-    """A user-facing parameter problem (unknown key, wrong type); the CLI prints it and exits 2."""
+class ParamsError(UserError):
+    """A user-facing parameter problem (unknown key, wrong type); the CLI prints it and exits 2.
+    A `UserError`, hence still a ValueError."""
 
 
 def build_params(params_cls: type, values: dict[str, Any], where: str) -> Any:

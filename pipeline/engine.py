@@ -1,0 +1,167 @@
+"""Computing one step, in whatever process an executor chose: check the store, take the lease (or
+wait for whoever holds it), run the stage into a temp folder, publish, release.
+
+Only plain data (`Job`, `Outcome`) crosses process or Ray boundaries; the store is reopened from
+its path in the worker, so the engine keeps no state besides the cache.
+"""
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import traceback
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pipeline.errors import describe, is_user_error
+from pipeline.registry import load_ref
+from pipeline.stage import build_params
+from pipeline.store import Store
+
+
+@dataclass(frozen=True)
+class Job:
+    key: str
+    stage_ref: str                  # "module:Class"
+    params: dict[str, Any]          # validated values (all fields)
+    inputs: dict[str, str]          # input name -> folder/file path
+    key_inputs: dict[str, Any]
+    label: str
+    log_path: str
+    cache_root: str
+    threads: int = 1
+    quiet: bool = False
+    lease_ttl_s: float = 30.0
+
+
+@dataclass(frozen=True)
+class Outcome:
+    key: str
+    status: str                     # "done" | "cached" | "failed"
+    path: str | None = None
+    error: str | None = None
+    user_error: bool = False
+    duration_s: float = 0.0
+    started: float = 0.0
+    finished: float = 0.0
+
+
+@functools.lru_cache(maxsize=1)
+def code_commit() -> str | None:
+    """The git commit of the code (None outside a checkout); recorded, not keyed."""
+    try:
+        result = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True,
+                                text=True, timeout=5)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if result.returncode != 0:
+        return None
+    return result.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+
+
+class _ScreenFilter(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not getattr(record, "file_only", False)
+
+
+def step_logger(job: Job) -> tuple[logging.Logger, list[logging.Handler]]:
+    logger = logging.getLogger(f"dualnerf.step.{job.key[:16]}.{uuid.uuid4().hex[:6]}")
+    logger.setLevel(logging.INFO)
+    logger.propagate = False
+    Path(job.log_path).parent.mkdir(parents=True, exist_ok=True)
+    to_file = logging.FileHandler(job.log_path, encoding="utf-8")
+    to_file.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    to_screen = logging.StreamHandler(sys.stderr)
+    to_screen.setLevel(logging.INFO)
+    to_screen.addFilter(_ScreenFilter())
+    to_screen.setFormatter(logging.Formatter(f"[{job.label}] %(message)s"))
+    handlers = [to_file, to_screen]
+    for handler in handlers:
+        logger.addHandler(handler)
+    return logger, handlers
+
+
+def _wait_or_acquire(store: Store, job: Job, log: logging.Logger):
+    """Returns (lease, None) once we hold the lease, or (None, path) if someone else published the key."""
+    lease = store.lease(job.key)
+    delay, announced = 0.05, False
+    while not lease.try_acquire():
+        path = store.lookup(job.key)
+        if path is not None:
+            return None, path
+        if not announced:
+            holder = lease.holder()
+            who = f"{holder.host} pid {holder.pid}" if holder else "another process"
+            log.info("waiting for lease on %s held by %s", job.key[:12], who)
+            announced = True
+        time.sleep(delay)
+        delay = min(delay * 1.5, 1.0)
+    return lease, None
+
+
+def execute_job(job: Job) -> Outcome:
+    """Produce the published result of `job.key`. Stage exceptions become a failed Outcome (traceback
+    in the log file); KeyboardInterrupt propagates after cleanup (lease released, checkpoints kept)."""
+    started = time.time()
+    store = Store(job.cache_root, lease_ttl_s=job.lease_ttl_s)
+    path = store.lookup(job.key)
+    if path is not None:
+        return Outcome(job.key, "cached", str(path), started=started, finished=time.time())
+    log, handlers = step_logger(job)
+    lease, tmp = None, None
+    try:
+        lease, path = _wait_or_acquire(store, job, log)
+        if path is None:
+            path = store.lookup(job.key)      # published between our first look and the lease
+        if path is not None:
+            return Outcome(job.key, "cached", str(path), started=started, finished=time.time())
+        log.info("=== computing %s (%s) on %s pid %d", job.label, job.key, socket.gethostname(), os.getpid())
+        stage_cls = load_ref(job.stage_ref)
+        params = build_params(stage_cls.Params, job.params, f"step '{job.label}'")
+        tmp = store.new_tmp(job.key)
+        from pipeline.context import StepContext
+
+        ctx = StepContext(key=job.key, params=params, inputs={k: Path(v) for k, v in job.inputs.items()},
+                          out_dir=tmp, scratch_dir=store.scratch_path(job.key), log=log, threads=job.threads,
+                          quiet=job.quiet, label=job.label)
+        resumed = ctx.latest_checkpoint()
+        if resumed is not None:
+            log.info("resuming from checkpoint %d", resumed[0])
+        stage_cls().run(ctx)
+        finished = time.time()
+        manifest = {
+            "stage": stage_cls.name, "label": job.label, "key_inputs": job.key_inputs,
+            "packages": job.key_inputs.get("environment", {}).get("packages", {}),
+            "params": {k: v for k, v in job.params.items()}, "git_commit": code_commit(),
+            "host": socket.gethostname(), "pid": os.getpid(), "python": sys.version.split()[0],
+            "started": started, "finished": finished, "duration_s": round(finished - started, 6),
+            "resumed_from_checkpoint": resumed[0] if resumed else None, "record": ctx.records,
+        }
+        path = store.publish(job.key, tmp, manifest)
+        tmp = None
+        store.remove_scratch(job.key)
+        log.info("published %s in %.2fs", job.key[:12], finished - started)
+        return Outcome(job.key, "done", str(path), duration_s=finished - started, started=started,
+                       finished=time.time())
+    except Exception as exc:  # noqa: BLE001 - a failed step is data for the run record, not a crash
+        log.error("step failed: %s\n%s", describe(exc), traceback.format_exc(), extra={"file_only": True})
+        log.error("failed: %s (log: %s)", describe(exc), job.log_path)
+        return Outcome(job.key, "failed", error=describe(exc), user_error=is_user_error(exc),
+                       started=started, finished=time.time(), duration_s=time.time() - started)
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+        if lease is not None:
+            lease.release()
+        for handler in handlers:
+            log.removeHandler(handler)
+            handler.close()

@@ -1,0 +1,181 @@
+"""Executors run `Job`s and report `Outcome`s; the runner (pipeline.runner) decides what is ready.
+
+    SerialExecutor()                 in this process, one at a time (tests, debugging)
+    ProcessPoolExecutor(jobs)        spawn-context worker processes; each job gets
+                                     threads = max(1, cores // jobs)
+    RayExecutor(address=None)        one ray task per step with the stage's resource hints; joins
+                                     `address` or starts a local instance; ray imported lazily
+All of them read and write the shared cache folder; only Jobs (keys, params, paths) cross over.
+"""
+from __future__ import annotations
+
+import os
+import signal
+from abc import ABC, abstractmethod
+from typing import Any
+
+from pipeline.engine import Job, Outcome, execute_job
+from pipeline.errors import UserError
+from pipeline.stage import Resources
+
+
+def cpu_count() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
+class Executor(ABC):
+    name: str = "?"
+    slots: int = 1              # how many jobs the runner may have in flight
+    threads: int = 1            # ctx.threads for each job
+
+    @abstractmethod
+    def submit(self, job: Job, resources: Resources) -> Any:
+        """Start (or queue) a job; returns a handle."""
+
+    @abstractmethod
+    def wait(self) -> list[tuple[Any, Outcome]]:
+        """Block until at least one submitted job finished; return (handle, outcome) pairs."""
+
+    def shutdown(self, interrupted: bool = False) -> None:
+        pass
+
+
+class SerialExecutor(Executor):
+    name = "serial"
+
+    def __init__(self, threads: int | None = None):
+        self.threads = threads or cpu_count()
+        self._queue: list[tuple[int, Job]] = []
+        self._next = 0
+
+    def submit(self, job: Job, resources: Resources) -> int:
+        self._next += 1
+        self._queue.append((self._next, job))
+        return self._next
+
+    def wait(self) -> list[tuple[Any, Outcome]]:
+        handle, job = self._queue.pop(0)
+        return [(handle, execute_job(job))]
+
+
+def _worker_init(threads: int) -> None:
+    # Before any stage imports torch/numpy: keep BLAS pools to this job's share of the cores.
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[name] = str(threads)
+    # SIGTERM from the runner's shutdown unwinds like Ctrl-C, so leases are released.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+
+
+class ProcessPoolExecutor(Executor):
+    name = "process"
+
+    def __init__(self, jobs: int):
+        import concurrent.futures
+        import multiprocessing
+
+        self.slots = max(1, jobs)
+        self.threads = max(1, cpu_count() // self.slots)
+        self._pool = concurrent.futures.ProcessPoolExecutor(
+            max_workers=self.slots, mp_context=multiprocessing.get_context("spawn"),
+            initializer=_worker_init, initargs=(self.threads,))
+        self._futures: set = set()
+
+    def submit(self, job: Job, resources: Resources):
+        future = self._pool.submit(execute_job, job)
+        self._futures.add(future)
+        return future
+
+    def wait(self) -> list[tuple[Any, Outcome]]:
+        import concurrent.futures
+
+        done, _ = concurrent.futures.wait(self._futures, return_when=concurrent.futures.FIRST_COMPLETED)
+        out = []
+        for future in done:
+            self._futures.discard(future)
+            out.append((future, _outcome_of(future.result)))
+        return out
+
+    def shutdown(self, interrupted: bool = False) -> None:
+        if interrupted:
+            for process in list(getattr(self._pool, "_processes", {}).values()):
+                if process.is_alive():
+                    os.kill(process.pid, signal.SIGTERM)
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _outcome_of(get_result) -> Outcome:
+    """A worker that died (killed, out of memory) is a failed step, not a crashed run."""
+    try:
+        return get_result()
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:  # noqa: BLE001
+        return Outcome(key="?", status="failed", error=f"worker died: {type(exc).__name__}: {exc}")
+
+
+class RayExecutor(Executor):
+    name = "ray"
+
+    def __init__(self, address: str | None = None, max_retries: int = 1, num_cpus: int | None = None):
+        try:
+            import ray
+        except ModuleNotFoundError:
+            raise UserError("the ray executor needs the 'ray' package: pip install 'dualnerf-pipeline[ray]'.")
+        self._ray = ray
+        if not ray.is_initialized():
+            if address:
+                ray.init(address=address, include_dashboard=False, log_to_driver=True)
+            else:
+                ray.init(num_cpus=num_cpus or cpu_count(), include_dashboard=False)
+        self.cluster_cpus = int(ray.cluster_resources().get("CPU", 1))
+        self.slots = 1 << 16          # ray itself queues tasks by resources
+        self.threads = 1
+        self.max_retries = max_retries
+        self._remote = ray.remote(_ray_execute)
+        self._refs: dict = {}
+
+    def submit(self, job: Job, resources: Resources):
+        # A stage asking for more CPUs than the cluster has would never be scheduled: clamp.
+        cpus = max(1, min(resources.cpus, self.cluster_cpus))
+        job = Job(**{**job.__dict__, "threads": cpus})
+        ref = self._remote.options(num_cpus=cpus, num_gpus=resources.gpus,
+                                   max_retries=self.max_retries).remote(job)
+        self._refs[ref] = job
+        return ref
+
+    def wait(self) -> list[tuple[Any, Outcome]]:
+        ready, _ = self._ray.wait(list(self._refs), num_returns=1)
+        out = []
+        for ref in ready:
+            job = self._refs.pop(ref)
+            outcome = _outcome_of(lambda: self._ray.get(ref))
+            if outcome.key == "?":
+                outcome = Outcome(job.key, "failed", error=outcome.error)
+            out.append((ref, outcome))
+        return out
+
+    def shutdown(self, interrupted: bool = False) -> None:
+        if interrupted:
+            for ref in self._refs:
+                self._ray.cancel(ref)
+
+
+def _ray_execute(job: Job) -> Outcome:
+    os.environ["OMP_NUM_THREADS"] = str(job.threads)
+    return execute_job(job)
+
+
+def make_executor(kind: str, *, jobs: int = 1, address: str | None = None) -> Executor:
+    """'serial' | 'process' | 'ray' (the CLI's --executor); jobs > 1 with 'serial' means 'process'."""
+    if kind == "serial" and jobs > 1:
+        kind = "process"
+    if kind == "serial":
+        return SerialExecutor()
+    if kind == "process":
+        return ProcessPoolExecutor(jobs)
+    if kind == "ray":
+        return RayExecutor(address=address)
+    raise UserError(f"unknown executor '{kind}'; choose serial, process or ray.")

@@ -1,0 +1,101 @@
+"""Content hashes of user files and folders, memoised on disk by (path, size, mtime_ns).
+
+The memo makes re-keying a workflow over a 100-image folder cost one `stat` per file. A file whose
+mtime is within `RACY_WINDOW_NS` of the moment it was hashed is not memoised: it could still be
+rewritten within the file system's timestamp granularity without its (size, mtime) changing.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+import uuid
+from pathlib import Path
+
+from pipeline.errors import UserError
+
+RACY_WINDOW_NS = 2_000_000_000
+_CHUNK = 1 << 20
+
+
+class InputMissingError(UserError):
+    pass
+
+
+def sha256_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def write_json_atomic(path: Path, data: object) -> None:
+    """Write JSON to a unique temp name in the same folder, then os.replace: readers see old or new."""
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(data, f, indent=1, sort_keys=True)
+        f.write("\n")
+    os.replace(tmp, path)
+
+
+class ContentHasher:
+    """Hashes files and folders; `save()` persists the memo (lost concurrent updates only cost re-hashing)."""
+
+    def __init__(self, memo_path: Path | None):
+        self.memo_path = memo_path
+        self._memo: dict[str, list] | None = None
+        self._dirty = False
+
+    def _load(self) -> dict[str, list]:
+        if self._memo is None:
+            self._memo = {}
+            if self.memo_path is not None and self.memo_path.exists():
+                try:
+                    self._memo = json.loads(self.memo_path.read_text(encoding="utf-8"))
+                except (OSError, ValueError):
+                    self._memo = {}   # a damaged memo is only a cache: start over
+        return self._memo
+
+    def file_sha256(self, path: Path, stat: os.stat_result | None = None) -> str:
+        memo = self._load()
+        st = stat or path.stat()
+        name = str(path.absolute())
+        hit = memo.get(name)
+        if hit is not None and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
+            return hit[2]
+        sha = sha256_file(path)
+        if time.time_ns() - st.st_mtime_ns > RACY_WINDOW_NS:
+            memo[name] = [st.st_size, st.st_mtime_ns, sha]
+            self._dirty = True
+        return sha
+
+    def hash_path(self, path: Path, what: str = "input") -> str:
+        """'file:<sha256>' of a file's bytes or 'dir:<sha256>' over the sorted (relative path, size,
+        sha256) of every file below a folder."""
+        path = Path(path)
+        if path.is_file():
+            return "file:" + self.file_sha256(path)
+        if not path.is_dir():
+            raise InputMissingError(
+                f"{what}: '{path}' does not exist (or is neither a file nor a folder). Check the path in "
+                f"the workflow file; relative paths are resolved against the current directory."
+            )
+        listing = []
+        for folder, dirnames, filenames in os.walk(path):
+            dirnames.sort()
+            for filename in sorted(filenames):
+                file_path = Path(folder) / filename
+                st = file_path.stat()
+                rel = file_path.relative_to(path).as_posix()
+                listing.append([rel, st.st_size, self.file_sha256(file_path, st)])
+        listing.sort()
+        blob = json.dumps(listing, separators=(",", ":")).encode("utf-8")
+        return "dir:" + hashlib.sha256(blob).hexdigest()
+
+    def save(self) -> None:
+        if self._dirty and self.memo_path is not None:
+            self.memo_path.parent.mkdir(parents=True, exist_ok=True)
+            write_json_atomic(self.memo_path, self._memo)
+            self._dirty = False

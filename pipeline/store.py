@@ -1,0 +1,284 @@
+"""The content-addressed result store (the cache). It is the engine's only state.
+
+Layout under the cache root:
+    objects/<k[:2]>/<k>/     published results: the stage's output files + manifest.json (written last)
+    tmp/<k>.<nonce>/         work in progress; published by one os.rename of the whole folder
+    scratch/<k>/             in-stage checkpoints and progress.json; kept across failed or killed
+                             attempts, deleted after a successful publish (and by gc when stale)
+    leases/<k>.lease         who is computing <k> right now (see pipeline.lease)
+    quarantine/<k>.<time>/   results whose files did not match their manifest; never used again
+    pins/<k>                 gc roots besides run records
+    config.json              {"salt": ...}: store-wide salt entering every key
+    hashmemo.json            memo of input-file hashes (pipeline.hashing)
+A result is only ever used after its files were checked against its manifest (sizes, and sha256
+unless a caller asks for the cheap check).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+from pipeline.errors import UserError
+from pipeline.hashing import ContentHasher, sha256_file, write_json_atomic
+from pipeline.keys import FORMAT_VERSION
+from pipeline.lease import Lease, read_lease
+
+MANIFEST = "manifest.json"
+log = logging.getLogger("dualnerf.store")
+
+
+class StoreError(UserError):
+    pass
+
+
+def folder_size(path: Path) -> int:
+    total = 0
+    for folder, _, files in os.walk(path):
+        for name in files:
+            try:
+                total += (Path(folder) / name).lstat().st_size
+            except OSError:
+                pass
+    return total
+
+
+def _write_manifest(folder: Path, manifest: dict[str, Any]) -> None:
+    write_json_atomic(folder / MANIFEST, manifest)
+
+
+@dataclass
+class GcReport:
+    removed: list[str] = field(default_factory=list)
+    kept: int = 0
+    freed_bytes: int = 0
+    removed_other: list[str] = field(default_factory=list)   # tmp, scratch, quarantine folders
+
+
+class Store:
+    def __init__(self, root: Path | str, lease_ttl_s: float = 30.0):
+        self.root = Path(root).absolute()
+        self.objects = self.root / "objects"
+        self.tmp = self.root / "tmp"
+        self.scratch = self.root / "scratch"
+        self.leases = self.root / "leases"
+        self.quarantine_dir = self.root / "quarantine"
+        self.pins = self.root / "pins"
+        self.lease_ttl_s = lease_ttl_s
+        self.hasher = ContentHasher(self.root / "hashmemo.json")
+
+    # ---- configuration -------------------------------------------------------------------------
+    @property
+    def salt(self) -> str:
+        path = self.root / "config.json"
+        if not path.exists():
+            return ""
+        try:
+            return str(json.loads(path.read_text(encoding="utf-8")).get("salt", ""))
+        except ValueError as exc:
+            raise StoreError(f"{path}: not valid JSON ({exc}); fix or delete it (it only holds the salt).")
+
+    def set_salt(self, salt: str) -> None:
+        self.root.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(self.root / "config.json", {"salt": salt})
+
+    # ---- paths ---------------------------------------------------------------------------------
+    def object_path(self, key: str) -> Path:
+        return self.objects / key[:2] / key
+
+    def scratch_path(self, key: str) -> Path:
+        return self.scratch / key
+
+    def lease(self, key: str) -> Lease:
+        return Lease(self.leases / f"{key}.lease", ttl_s=self.lease_ttl_s)
+
+    def lease_holder(self, key: str):
+        return read_lease(self.leases / f"{key}.lease")
+
+    def new_tmp(self, key: str) -> Path:
+        path = self.tmp / f"{key}.{uuid.uuid4().hex[:12]}"
+        path.mkdir(parents=True)
+        return path
+
+    # ---- reading -------------------------------------------------------------------------------
+    def has(self, key: str) -> bool:
+        """Published (manifest present); no file checks. For listings, not for use."""
+        return (self.object_path(key) / MANIFEST).is_file()
+
+    def manifest(self, key: str) -> dict[str, Any] | None:
+        try:
+            return json.loads((self.object_path(key) / MANIFEST).read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+
+    def problems(self, key: str, full: bool = True) -> list[str]:
+        """What is wrong with a published entry: missing/extra/resized/changed files. [] if intact."""
+        folder = self.object_path(key)
+        manifest = self.manifest(key)
+        if manifest is None:
+            return [f"{folder / MANIFEST}: missing or not valid JSON"]
+        if manifest.get("key") != key or manifest.get("format") != FORMAT_VERSION:
+            return [f"{folder / MANIFEST}: describes key {manifest.get('key')!r}, format "
+                    f"{manifest.get('format')!r}"]
+        found = []
+        expected = manifest.get("files", {})
+        for rel, meta in expected.items():
+            path = folder / rel
+            try:
+                size = path.stat().st_size
+            except OSError:
+                found.append(f"{path}: missing")
+                continue
+            if size != meta["size"]:
+                found.append(f"{path}: size {size}, manifest says {meta['size']}")
+            elif full and sha256_file(path) != meta["sha256"]:
+                found.append(f"{path}: content changed (sha256 differs from manifest)")
+        for rel in _list_files(folder):
+            if rel != MANIFEST and rel not in expected:
+                found.append(f"{folder / rel}: not listed in the manifest")
+        return found
+
+    def lookup(self, key: str, full: bool = True) -> Path | None:
+        """The published folder for `key` if present and intact; a damaged entry is reported,
+        quarantined and treated as absent (so it gets recomputed)."""
+        folder = self.object_path(key)
+        if not folder.exists():
+            return None
+        found = self.problems(key, full=full)
+        if not found:
+            return folder
+        log.warning("cache entry %s is damaged and will be recomputed: %s", key[:12], "; ".join(found))
+        self.quarantine(key, found)
+        return None
+
+    def entries(self) -> Iterator[tuple[str, Path]]:
+        if not self.objects.is_dir():
+            return
+        for prefix in sorted(self.objects.iterdir()):
+            if prefix.is_dir():
+                for folder in sorted(prefix.iterdir()):
+                    yield folder.name, folder
+
+    # ---- writing -------------------------------------------------------------------------------
+    def publish(self, key: str, tmp: Path, manifest: dict[str, Any]) -> Path:
+        """Hash the outputs in `tmp`, write the manifest last, and rename the folder into place."""
+        if (tmp / MANIFEST).exists():
+            raise StoreError(f"the stage wrote '{MANIFEST}' into its output folder; that name is "
+                             f"reserved for the store. Rename the output file.")
+        files = {}
+        for rel in _list_files(tmp):
+            path = tmp / rel
+            files[rel] = {"size": path.stat().st_size, "sha256": sha256_file(path)}
+        manifest = dict(manifest, key=key, format=FORMAT_VERSION, files=files)
+        _write_manifest(tmp, manifest)
+        final = self.object_path(key)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        for _ in range(2):
+            try:
+                self._rename_into_place(tmp, final)
+                return final
+            except OSError:
+                # Someone published the same key first (the rename target exists). Keep theirs if intact.
+                if self.lookup(key) is not None:
+                    shutil.rmtree(tmp, ignore_errors=True)
+                    return final
+        raise StoreError(f"could not publish {key} to {final}")
+
+    @staticmethod
+    def _rename_into_place(tmp: Path, final: Path) -> None:
+        os.rename(tmp, final)
+
+    def quarantine(self, key: str, reasons: list[str]) -> Path | None:
+        self.quarantine_dir.mkdir(parents=True, exist_ok=True)
+        target = self.quarantine_dir / f"{key}.{time.strftime('%Y%m%dT%H%M%S')}.{uuid.uuid4().hex[:6]}"
+        try:
+            os.rename(self.object_path(key), target)
+        except FileNotFoundError:
+            return None      # another process quarantined it first
+        (target.parent / f"{target.name}.reason.txt").write_text("\n".join(reasons) + "\n", encoding="utf-8")
+        return target
+
+    def remove_scratch(self, key: str) -> None:
+        shutil.rmtree(self.scratch_path(key), ignore_errors=True)
+
+    # ---- pins and garbage collection ------------------------------------------------------------
+    def pin(self, key: str) -> None:
+        if not self.has(key):
+            raise StoreError(f"no published cache entry {key} in {self.root}; `dualnerf cache ls` lists them.")
+        self.pins.mkdir(parents=True, exist_ok=True)
+        (self.pins / key).write_text("", encoding="utf-8")
+
+    def unpin(self, key: str) -> None:
+        (self.pins / key).unlink(missing_ok=True)
+
+    def pinned(self) -> set[str]:
+        return {p.name for p in self.pins.iterdir()} if self.pins.is_dir() else set()
+
+    def resolve_prefix(self, prefix: str) -> str:
+        matches = [k for k, _ in self.entries() if k.startswith(prefix)]
+        if len(matches) != 1:
+            raise StoreError(f"key prefix '{prefix}' matches {len(matches)} cache entries in {self.root}; "
+                             f"give more characters (`dualnerf cache ls` shows keys).")
+        return matches[0]
+
+    def closure(self, roots: set[str]) -> set[str]:
+        """Roots plus every upstream key their manifests name (what a root's result was built from)."""
+        reached, todo = set(), list(roots)
+        while todo:
+            key = todo.pop()
+            if key in reached:
+                continue
+            reached.add(key)
+            manifest = self.manifest(key) or {}
+            todo.extend(manifest.get("key_inputs", {}).get("upstream", {}).values())
+        return reached
+
+    def gc(self, roots: set[str], *, stale_after_s: float = 7 * 86400, dry_run: bool = False) -> GcReport:
+        """Remove published entries not reachable from `roots` + pins; tmp folders and scratch
+        folders with no live lease that are older than `stale_after_s` (scratch of published keys
+        always); the quarantine."""
+        report = GcReport()
+        keep = self.closure(set(roots) | self.pinned())
+        now = time.time()
+
+        def remove(path: Path, bucket: list[str], name: str) -> None:
+            report.freed_bytes += folder_size(path) if path.is_dir() else path.stat().st_size
+            bucket.append(name)
+            if not dry_run:
+                shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+        for key, folder in list(self.entries()):
+            if key in keep:
+                report.kept += 1
+            else:
+                remove(folder, report.removed, key)
+        for parent in (self.tmp, self.scratch):
+            if not parent.is_dir():
+                continue
+            for path in parent.iterdir():
+                key = path.name.split(".")[0]
+                holder = self.lease_holder(key)
+                if holder is not None and not holder.is_stale():
+                    continue
+                published_scratch = parent == self.scratch and self.has(key)
+                if published_scratch or now - path.stat().st_mtime > stale_after_s or parent == self.tmp:
+                    remove(path, report.removed_other, f"{parent.name}/{path.name}")
+        if self.quarantine_dir.is_dir():
+            for path in self.quarantine_dir.iterdir():
+                remove(path, report.removed_other, f"quarantine/{path.name}")
+        return report
+
+
+def _list_files(folder: Path) -> list[str]:
+    out = []
+    for parent, dirnames, filenames in os.walk(folder):
+        dirnames.sort()
+        for name in filenames:
+            out.append((Path(parent) / name).relative_to(folder).as_posix())
+    return sorted(out)

@@ -1,0 +1,196 @@
+"""Test-only stages for the engine tests, and a driver that runs a DAG in a real subprocess.
+
+    python -m tests.pipeline_stages SPEC.json      runs the steps in SPEC and prints the result JSON
+
+SPEC = {"cache": dir, "run_dir": dir, "executor": "serial"|"process"|"ray", "jobs": n,
+        "die": null | "before_publish" | "mid_manifest",
+        "steps": [{"stage", "params", "label", "inputs": {name: step index | {"external": path}}}]}
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.stage import Resources, Stage
+
+REGISTRY = {
+    "count": "tests.pipeline_stages:CountStage",
+    "add": "tests.pipeline_stages:AddStage",
+    "digest": "tests.pipeline_stages:DigestStage",
+    "fail": "tests.pipeline_stages:FailStage",
+}
+
+
+def _append(path: str, line: str) -> None:
+    if path:
+        with open(path, "a", encoding="utf-8") as f:
+            f.write(line + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+
+@dataclass(frozen=True)
+class CountParams:
+    n: int = 10
+    start: int = 0
+    trace: str = ""           # non-semantic: file the stage appends "<pid> <i>" to at every step
+    step_seconds: float = 0.0  # non-semantic: slows the stage so a test can interrupt it
+    gate: str = ""            # non-semantic: at step 1 wait until this file exists
+
+
+class CountStage(Stage):
+    """Counts from `start` to `n`, checkpointing the running total after every step."""
+
+    name = "count"
+    version = "1"
+    Params = CountParams
+    nonsemantic_params = frozenset({"trace", "step_seconds", "gate"})
+
+    def run(self, ctx) -> None:
+        p = ctx.params
+        i, total = 0, p.start
+        resume = ctx.latest_checkpoint()
+        if resume is not None:
+            i, folder = resume
+            total = json.loads((folder / "state.json").read_text())["total"]
+            _append(p.trace, f"{os.getpid()} resume {i}")
+        with ctx.progress(p.n, "counting", initial=i) as bar:
+            while i < p.n:
+                if i == 1 and p.gate:
+                    while not Path(p.gate).exists():
+                        time.sleep(0.01)
+                total += i
+                i += 1
+                _append(p.trace, f"{os.getpid()} {i}")
+                with ctx.checkpoint(i) as folder:
+                    (folder / "state.json").write_text(json.dumps({"total": total}))
+                bar.update(1, total=total)
+                if p.step_seconds:
+                    time.sleep(p.step_seconds)
+        ctx.record(counted=p.n)
+        (ctx.out_dir / "total.txt").write_text(f"{total}\n")
+        (ctx.out_dir / "sub").mkdir()
+        (ctx.out_dir / "sub" / "steps.txt").write_text(f"{p.n}\n")
+
+
+@dataclass(frozen=True)
+class AddParams:
+    value: float = 0.0
+    threads_seen: str = ""    # non-semantic: file to write ctx.threads to
+
+
+class AddStage(Stage):
+    """total = value + the totals of whichever of `left` / `right` it was given (optional inputs)."""
+
+    name = "add"
+    version = "1"
+    Params = AddParams
+    upstream = ("left", "right")
+    resources = Resources(cpus=1)
+    nonsemantic_params = frozenset({"threads_seen"})
+
+    def run(self, ctx) -> None:
+        total = ctx.params.value
+        for name in ("left", "right"):
+            if name in ctx.inputs:
+                total += float((ctx.inputs[name] / "total.txt").read_text())
+        if ctx.params.threads_seen:
+            Path(ctx.params.threads_seen).write_text(str(ctx.threads))
+        (ctx.out_dir / "total.txt").write_text(f"{total!r}\n")
+
+
+@dataclass(frozen=True)
+class DigestParams:
+    scale: int = 1
+
+
+class DigestStage(Stage):
+    """Reads an external file or folder and writes the byte count times `scale` (and a file listing)."""
+
+    name = "digest"
+    version = "1"
+    Params = DigestParams
+    external = ("source",)
+
+    def run(self, ctx) -> None:
+        source = ctx.inputs["source"]
+        files = sorted(p for p in source.rglob("*") if p.is_file()) if source.is_dir() else [source]
+        size = sum(p.stat().st_size for p in files)
+        (ctx.out_dir / "total.txt").write_text(f"{size * ctx.params.scale}\n")
+        (ctx.out_dir / "files.txt").write_text("".join(f"{p.name}\n" for p in files))
+
+
+class BadInputError(ValueError):
+    user_error = True
+
+
+@dataclass(frozen=True)
+class FailParams:
+    message: str = "no good"
+    internal: bool = False
+
+
+class FailStage(Stage):
+    name = "fail"
+    version = "1"
+    Params = FailParams
+    upstream = ("left",)
+
+    def run(self, ctx) -> None:
+        if ctx.params.internal:
+            raise RuntimeError(ctx.params.message)
+        raise BadInputError(ctx.params.message)
+
+
+def build_steps(spec_steps: list[dict]):
+    from pipeline.dag import External, Step
+
+    steps: list[Step] = []
+    for entry in spec_steps:
+        inputs = {}
+        for name, source in entry.get("inputs", {}).items():
+            inputs[name] = External(source["external"]) if isinstance(source, dict) else steps[source]
+        steps.append(Step(entry["stage"], entry.get("params", {}), inputs, entry.get("label", "")))
+    return steps
+
+
+def _die_at(where: str) -> None:
+    """Make this process SIGKILL itself at a chosen point of publishing (crash-safety tests)."""
+    from pipeline import store as store_module
+
+    def kill_self(*args, **kwargs):
+        if where == "mid_manifest":
+            Path(args[0], store_module.MANIFEST).write_text('{"key": "trunc')   # half a manifest
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    if where == "before_publish":
+        store_module.Store._rename_into_place = staticmethod(kill_self)
+    elif where == "mid_manifest":
+        store_module._write_manifest = kill_self
+
+
+def main(argv: list[str]) -> int:
+    from pipeline.executors import make_executor
+    from pipeline.runner import run_steps
+    from pipeline.store import Store
+
+    spec = json.loads(Path(argv[0]).read_text())
+    if spec.get("die"):
+        _die_at(spec["die"])
+    steps = build_steps(spec["steps"])
+    executor = make_executor(spec.get("executor", "serial"), jobs=spec.get("jobs", 1))
+    result = run_steps(steps, registry=REGISTRY, store=Store(spec["cache"]), executor=executor,
+                       run_dir=Path(spec["run_dir"]), quiet=True)
+    print(json.dumps({"results": [str(result.results.get(s)) for s in steps],
+                      "status": [result.status[s] for s in steps],
+                      "failed": [f.error for f in result.failed]}))
+    return 0 if result.ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
