@@ -10,6 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# metrics.json, written by the evaluate stage and read by the report.
+METRICS_FORMAT = "dualnerf-metrics"
+METRICS_VERSION = 1
+
 # Wang et al. 2004 SSIM settings: 11x11 Gaussian window (sigma 1.5), population covariance, K1/K2 defaults.
 SSIM_SIGMA = 1.5
 SSIM_WINDOW = 11
@@ -50,6 +54,25 @@ METRICS: dict[str, MetricInfo] = {
     "gt_psnr_inside": MetricInfo("PSNR_in", True, False, "PSNR inside the edit mask vs the GT edit"),
     "gt_ssim_inside": MetricInfo("SSIM_in", True, False, "SSIM inside the edit mask vs the GT edit"),
 }
+
+
+def json_value(value: float) -> float | str | None:
+    """A metric value for plain JSON: nan (undefined) -> null, inf (identical images) -> "inf"."""
+    value = float(value)
+    if np.isnan(value):
+        return None
+    if np.isinf(value):
+        return "inf" if value > 0 else "-inf"
+    return value
+
+
+def parse_json_value(value) -> float:
+    """Inverse of json_value."""
+    if value is None:
+        return float("nan")
+    if isinstance(value, str):
+        return float(value)            # "inf" / "-inf"
+    return float(value)
 
 
 # ---------------------------------------------------------------------------------------------- CLIP space

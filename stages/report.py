@@ -1,0 +1,420 @@
+"""The experiment report: a Table-2-style metrics table, an image grid, training curves and index.html.
+
+`build_report(rows, out_dir, title_info=...)` reads finished evaluate results (their `metrics.json`,
+`views/`, `path.mp4`) and edit results (`curves.json`) and writes, into `out_dir`:
+    table.md, table.csv, table.json    one row per variant (mean ± std over seeds), best value marked
+    grid.png                           rows: original, ground-truth edit (procedural scenes), variants
+    curves/<series>.png                training curves of every edited row, one plot per series
+    videos/<row>.mp4                   copies of the camera-path videos
+    index.html                         everything above, with relative links only
+It knows nothing about workflows or the cache: callers (the CLI, `dualnerf run`) resolve the folders.
+"""
+from __future__ import annotations
+
+import csv
+import html
+import json
+import math
+import re
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dualnerf.metrics import METRICS, METRICS_FORMAT, METRICS_VERSION, json_value, parse_json_value
+
+GRID_VIEWS = 4
+SIMULATED_EDITORS = {"synthetic"}
+SIMULATED_ENCODERS = {"proxy"}
+
+
+class ReportError(ValueError):
+    """A report input that cannot be used; the message names the folder/file and what to do."""
+
+
+@dataclass(frozen=True)
+class ReportRow:
+    """One evaluated result. Toggles are None for the unedited "Original Scene" row."""
+
+    label: str
+    dual_field: bool | None
+    annealing: bool | None
+    consistency: bool | None
+    seed: int | None
+    evaluate_dir: Path
+    edit_dir: Path | None = None
+
+    @property
+    def is_original(self) -> bool:
+        return self.dual_field is None
+
+    @property
+    def variant_key(self) -> tuple:
+        return (self.label, self.dual_field, self.annealing, self.consistency)
+
+
+def load_metrics(evaluate_dir: Path) -> dict:
+    """Read and check an evaluate result's metrics.json."""
+    path = Path(evaluate_dir) / "metrics.json"
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ReportError(f"{path} is missing: {evaluate_dir} is not a finished evaluate result; "
+                          f"rerun the workflow (dualnerf run) before building the report.") from None
+    except json.JSONDecodeError as err:
+        raise ReportError(f"{path} is not valid JSON ({err}); verify the cache (dualnerf cache verify).") from None
+    if doc.get("format") != METRICS_FORMAT or doc.get("version") != METRICS_VERSION:
+        raise ReportError(f"{path}: expected format {METRICS_FORMAT} v{METRICS_VERSION}, got "
+                          f"{doc.get('format')} v{doc.get('version')}; rerun the evaluate stage.")
+    return doc
+
+
+def metric_value(entry: dict | None) -> float:
+    """A metrics.json value as a float: null -> nan, the string "inf" -> inf."""
+    return math.nan if entry is None else parse_json_value(entry.get("value"))
+
+
+# ---------------------------------------------------------------------------------------------- table
+
+@dataclass
+class TableRow:
+    label: str
+    toggles: tuple[bool | None, bool | None, bool | None]
+    seeds: list[int | None]
+    mean: dict[str, float]
+    std: dict[str, float]
+    best: dict[str, bool]
+
+
+def _column_names(docs: list[dict]) -> list[str]:
+    present = {name for doc in docs for name in doc.get("metrics", {})}
+    return [name for name in METRICS if name in present]
+
+
+def _encoder_tags(docs: list[dict], column: str) -> str:
+    tags = sorted({doc["metrics"][column].get("encoder", "?") for doc in docs if column in doc["metrics"]})
+    return ", ".join(tags)
+
+
+def column_header(column: str, docs: list[dict]) -> str:
+    info = METRICS[column]
+    arrow = "↑" if info.higher_is_better else "↓"
+    tag = f" [{_encoder_tags(docs, column)}]" if info.uses_encoder else ""
+    return f"{info.symbol} {arrow}{tag}"
+
+
+def aggregate(rows: list[ReportRow], docs: list[dict]) -> tuple[list[str], list[TableRow]]:
+    """Group rows by variant (Original first, then grid order), mean ± sample std over seeds, and mark
+    the best mean per column in the direction the metric improves."""
+    columns = _column_names(docs)
+    groups: dict[tuple, list[int]] = {}
+    for i, row in enumerate(rows):
+        groups.setdefault(row.variant_key, []).append(i)
+    ordered = sorted(groups.items(), key=lambda kv: (not rows[kv[1][0]].is_original, kv[1][0]))
+    table = []
+    for _, members in ordered:
+        first = rows[members[0]]
+        mean, std = {}, {}
+        for column in columns:
+            values = np.array([metric_value(docs[i]["metrics"].get(column)) for i in members])
+            values = values[~np.isnan(values)]
+            mean[column] = float(np.mean(values)) if values.size else math.nan
+            std[column] = float(np.std(values, ddof=1)) if values.size > 1 and np.all(np.isfinite(values)) \
+                else math.nan
+        table.append(TableRow(first.label, (first.dual_field, first.annealing, first.consistency),
+                              [rows[i].seed for i in members], mean, std, {}))
+    for column in columns:
+        means = np.array([r.mean[column] for r in table])
+        valid = ~np.isnan(means)
+        if not valid.any():
+            best_value = None
+        else:
+            best_value = np.max(means[valid]) if METRICS[column].higher_is_better else np.min(means[valid])
+        for r in table:
+            value = r.mean[column]
+            r.best[column] = best_value is not None and not math.isnan(value) and \
+                math.isclose(value, best_value, rel_tol=1e-12, abs_tol=1e-12)
+    return columns, table
+
+
+def _digits(column: str) -> int:
+    return 2 if "psnr" in column else 4
+
+
+def format_cell(row: TableRow, column: str) -> str:
+    mean, std = row.mean[column], row.std[column]
+    if math.isnan(mean):
+        return "n/a"
+    if math.isinf(mean):
+        return "∞" if mean > 0 else "-∞"
+    text = f"{mean:.{_digits(column)}f}"
+    if len(row.seeds) > 1 and not math.isnan(std):
+        text += f" ± {std:.{_digits(column)}f}"
+    return text
+
+
+def _mark(flag: bool | None) -> str:
+    return "" if flag is None else ("✓" if flag else "✗")
+
+
+def write_tables(columns: list[str], table: list[TableRow], docs: list[dict], out_dir: Path) -> dict:
+    headers = [column_header(c, docs) for c in columns]
+    lines = ["| Variant | DF | SA | CCI | seeds | " + " | ".join(headers) + " |",
+             "|---|:-:|:-:|:-:|---|" + "---:|" * len(columns)]
+    for row in table:
+        label = "Original Scene" if row.toggles[0] is None else row.label
+        seeds = ", ".join("-" if s is None else str(s) for s in row.seeds)
+        cells = [f"**{format_cell(row, c)}**" if row.best[c] else format_cell(row, c) for c in columns]
+        lines.append(f"| {label} | " + " | ".join(_mark(t) for t in row.toggles) + f" | {seeds} | "
+                     + " | ".join(cells) + " |")
+    lines.append("")
+    lines.append("Best value per column in bold (↑ higher is better, ↓ lower). Bracketed tags name the "
+                 "encoder behind CLIP-space numbers; `proxy` is a weight-free stand-in, NOT CLIP.")
+    (out_dir / "table.md").write_text("\n".join(lines) + "\n")
+
+    with open(out_dir / "table.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        head = ["variant", "dual_field", "annealing", "consistency", "seeds"]
+        for column in columns:
+            head += [f"{column}_mean", f"{column}_std", f"{column}_best"]
+        writer.writerow(head)
+        for row in table:
+            record = [row.label, *("" if t is None else int(t) for t in row.toggles),
+                      " ".join("" if s is None else str(s) for s in row.seeds)]
+            for column in columns:
+                record += [_csv_number(row.mean[column]), _csv_number(row.std[column]), int(row.best[column])]
+            writer.writerow(record)
+
+    doc = {
+        "columns": [{"name": c, "symbol": METRICS[c].symbol, "higher_is_better": METRICS[c].higher_is_better,
+                     "encoder": _encoder_tags(docs, c) if METRICS[c].uses_encoder else None} for c in columns],
+        "rows": [{"label": r.label, "dual_field": r.toggles[0], "annealing": r.toggles[1],
+                  "consistency": r.toggles[2], "seeds": r.seeds,
+                  "metrics": {c: {"mean": json_value(r.mean[c]), "std": json_value(r.std[c]),
+                                  "n": len(r.seeds), "best": r.best[c]} for c in columns}}
+                 for r in table],
+    }
+    (out_dir / "table.json").write_text(json.dumps(doc, indent=1))
+    return doc
+
+
+def _csv_number(value: float) -> str:
+    if math.isnan(value):
+        return ""
+    return "inf" if math.isinf(value) else repr(value)
+
+
+# ---------------------------------------------------------------------------------------------- images
+
+def _read_rgb(path: Path) -> np.ndarray | None:
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    return None if image is None else image[..., ::-1]
+
+
+def write_image_grid(rows: list[ReportRow], docs: list[dict], path: Path) -> list[str] | None:
+    """A grid of fixed views (columns) for the original scene, the ground-truth edit where the scene
+    has one, and the first seed of every edited variant. Returns the row labels, or None without views."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = None
+    for doc in docs:
+        listed = doc.get("views", {}).get("names", [])
+        names = listed if names is None else [n for n in names if n in listed]
+    names = (names or [])[:GRID_VIEWS]
+    if not names:
+        return None
+    source = rows[0].evaluate_dir
+    grid: list[tuple[str, list[np.ndarray | None]]] = [
+        ("Original", [_read_rgb(source / "views" / "original" / n) for n in names])]
+    gt = [_read_rgb(source / "views" / "gt_edit" / n) for n in names]
+    if any(image is not None for image in gt):
+        grid.append(("GT edit", gt))
+    seen = set()
+    for row in rows:
+        if row.is_original or row.variant_key in seen:
+            continue
+        seen.add(row.variant_key)
+        grid.append((row.label, [_read_rgb(row.evaluate_dir / "views" / "edited" / n) for n in names]))
+    fig, axes = plt.subplots(len(grid), len(names), figsize=(2.2 * len(names), 2.0 * len(grid)),
+                             squeeze=False)
+    for r, (label, images) in enumerate(grid):
+        for c, image in enumerate(images):
+            ax = axes[r][c]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if image is None:
+                ax.text(0.5, 0.5, "missing", ha="center", va="center", transform=ax.transAxes)
+            else:
+                ax.imshow(image)
+            if c == 0:
+                ax.set_ylabel(label, fontsize=9)
+            if r == 0:
+                ax.set_title(names[c], fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return [label for label, _ in grid]
+
+
+# ---------------------------------------------------------------------------------------------- curves
+
+def load_curves(edit_dir: Path) -> dict[str, tuple[list[float], list[float]]]:
+    """An edit result's curves.json: {series: {"step": [...], "value": [...]}} -> {series: (steps, values)}."""
+    path = Path(edit_dir) / "curves.json"
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        return {}
+    except json.JSONDecodeError as err:
+        raise ReportError(f"{path} is not valid JSON ({err}); verify the cache (dualnerf cache verify).") from None
+    series = doc.get("series", doc)
+    curves = {}
+    for name, entry in series.items():
+        if isinstance(entry, dict) and "step" in entry and "value" in entry:
+            curves[name] = (list(entry["step"]), list(entry["value"]))
+    return curves
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_") or "row"
+
+
+def write_curves(rows: list[ReportRow], out_dir: Path) -> list[str]:
+    """One PNG per series (loss, psnr, blend weight, temperature, ...) with a line per edited row."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    by_series: dict[str, list[tuple[str, list, list]]] = {}
+    for row in rows:
+        if row.edit_dir is None:
+            continue
+        name = row.label if row.seed is None else f"{row.label} (seed {row.seed})"
+        for series, (steps, values) in load_curves(row.edit_dir).items():
+            by_series.setdefault(series, []).append((name, steps, values))
+    written = []
+    if by_series:
+        (out_dir / "curves").mkdir(exist_ok=True)
+    for series in sorted(by_series):
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        for name, steps, values in by_series[series]:
+            values = [math.nan if v is None else v for v in values]
+            marker = "o" if len(steps) < 30 else None
+            ax.plot(steps, values, label=name, marker=marker, markersize=3)
+        ax.set_xlabel("iteration")
+        ax.set_title(series)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        rel = f"curves/{_slug(series)}.png"
+        fig.savefig(out_dir / rel, dpi=90)
+        plt.close(fig)
+        written.append(rel)
+    return written
+
+
+# ---------------------------------------------------------------------------------------------- html
+
+def _identities(docs: list[dict], key: str) -> list[str]:
+    found = set()
+    for doc in docs:
+        entry = doc.get(key) or {}
+        if entry.get("kind"):
+            found.add(entry["kind"])
+    return sorted(found)
+
+
+def _title_rows(docs: list[dict], title_info: dict) -> list[tuple[str, str]]:
+    editors = _identities(docs, "editor") or ["none (no edited rows)"]
+    encoders = _identities(docs, "encoder") or ["unknown"]
+    editor_text = ", ".join(f"{e} (InstructPix2Pix EMULATOR, not IP2P)" if e in SIMULATED_EDITORS else e
+                            for e in editors)
+    encoder_text = ", ".join(f"{e} (weight-free stand-in, NOT CLIP)" if e in SIMULATED_ENCODERS else e
+                             for e in encoders)
+    rows = [(str(k), str(v)) for k, v in title_info.items()]
+    return rows + [("editor", editor_text), ("encoder", encoder_text)]
+
+
+def write_html(out_dir: Path, *, title_rows, table_doc, columns, table, docs, grid_labels, curves,
+               videos) -> Path:
+    esc = html.escape
+    parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'><title>DualNeRF report</title>",
+             "<style>body{font-family:sans-serif;margin:2em;max-width:1200px}table{border-collapse:collapse}"
+             "td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}th{background:#eee}"
+             ".best{font-weight:bold;background:#e6f4e6}.warn{color:#a00;font-weight:bold}"
+             "img{max-width:100%}</style></head><body>", "<h1>DualNeRF experiment report</h1>",
+             "<table class='title'>"]
+    for key, value in title_rows:
+        cls = " class='warn'" if ("EMULATOR" in value or "NOT CLIP" in value) else ""
+        parts.append(f"<tr><th>{esc(key)}</th><td{cls} style='text-align:left'>{esc(value)}</td></tr>")
+    parts.append("</table>")
+    parts.append("<h2>Metrics</h2><table><tr><th>Variant</th><th>DF</th><th>SA</th><th>CCI</th><th>seeds</th>")
+    parts += [f"<th>{esc(column_header(c, docs))}</th>" for c in columns]
+    parts.append("</tr>")
+    for row in table:
+        label = "Original Scene" if row.toggles[0] is None else row.label
+        seeds = ", ".join("-" if s is None else str(s) for s in row.seeds)
+        parts.append(f"<tr><td style='text-align:left'>{esc(label)}</td>"
+                     + "".join(f"<td style='text-align:center'>{_mark(t)}</td>" for t in row.toggles)
+                     + f"<td>{esc(seeds)}</td>")
+        for c in columns:
+            cls = " class='best'" if row.best[c] else ""
+            parts.append(f"<td{cls}>{esc(format_cell(row, c))}</td>")
+        parts.append("</tr>")
+    parts.append("</table><p>Best value per column highlighted. Downloads: <a href='table.md'>table.md</a>, "
+                 "<a href='table.csv'>table.csv</a>, <a href='table.json'>table.json</a>. Metric "
+                 "definitions: docs/metrics.md in the repository.</p>")
+    if grid_labels:
+        parts.append(f"<h2>Views</h2><p>Rows: {esc(', '.join(grid_labels))}.</p>"
+                     "<img src='grid.png' alt='image grid'>")
+    if curves:
+        parts.append("<h2>Training curves</h2>")
+        parts += [f"<img src='{esc(rel)}' alt='{esc(rel)}'>" for rel in curves]
+    if videos:
+        parts.append("<h2>Camera-path videos</h2>")
+        for label, rel in videos:
+            parts.append(f"<figure><figcaption>{esc(label)}</figcaption><video controls loop "
+                         f"src='{esc(rel)}' width='480'></video><br><a href='{esc(rel)}'>{esc(rel)}</a>"
+                         f"</figure>")
+    parts.append("</body></html>")
+    path = out_dir / "index.html"
+    path.write_text("\n".join(parts) + "\n")
+    return path
+
+
+def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict) -> Path:
+    """Write the report for `rows` (Original row first if present) into `out_dir`; returns index.html."""
+    if not rows:
+        raise ReportError("nothing to report: no evaluate results were given; run the workflow first.")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = sorted(rows, key=lambda r: not r.is_original)          # stable: grid order kept
+    docs = [load_metrics(row.evaluate_dir) for row in rows]
+    columns, table = aggregate(rows, docs)
+    table_doc = write_tables(columns, table, docs, out_dir)
+    grid_labels = write_image_grid(rows, docs, out_dir / "grid.png")
+    curves = write_curves(rows, out_dir)
+    videos = []
+    for row in rows:
+        source = row.evaluate_dir / "path.mp4"
+        if source.exists():
+            name = row.label if row.seed is None else f"{row.label}_seed{row.seed}"
+            rel = f"videos/{_slug(name)}.mp4"
+            (out_dir / "videos").mkdir(exist_ok=True)
+            shutil.copyfile(source, out_dir / rel)
+            videos.append((name, rel))
+    title_rows = _title_rows(docs, title_info)
+    (out_dir / "report.json").write_text(json.dumps({
+        "title": dict(title_rows), "table": table_doc, "grid_rows": grid_labels, "curves": curves,
+        "videos": [rel for _, rel in videos],
+        "rows": [{"label": r.label, "seed": r.seed, "evaluate_dir": str(r.evaluate_dir),
+                  "edit_dir": None if r.edit_dir is None else str(r.edit_dir)} for r in rows]}, indent=1))
+    return write_html(out_dir, title_rows=title_rows, table_doc=table_doc, columns=columns, table=table,
+                      docs=docs, grid_labels=grid_labels, curves=curves, videos=videos)
