@@ -164,14 +164,17 @@ def resolve_scene(name: str, scenes_dir: Path) -> tuple[dict[str, Step | Externa
 
 
 def _edit_vocabulary(name: str, user_folder: Path | None, path: Path):
-    from dualnerf.scenes import SCENES
-    from dualnerf.scenes.spec import load_scene_spec, scene_spec_for
+    from dualnerf.scenes import EditSpec, SceneSpec, load_scene_spec
+    from dualnerf.scenes.generate import BUILDERS
 
     if user_folder is not None:
         if not (user_folder / "scene.toml").exists():
             return None
         return load_scene_spec(user_folder)
-    return scene_spec_for(name) if name in SCENES else None
+    # A procedural scene's vocabulary is known without rendering it.
+    edits = BUILDERS[name][1]
+    return SceneSpec(name, tuple(EditSpec(e.id, e.instruction, e.source_caption, e.target_caption)
+                                 for e in edits))
 
 
 def _expand(path: Path, settings: dict, stage_params: dict) -> Workflow:
