@@ -1,0 +1,75 @@
+"""The `dualnerf` command line. Subcommands live in `stages/commands/<name>.py`, each exposing
+`register(subparsers)` and importing nothing heavy at module level, so `dualnerf --help` is instant.
+
+Exit status: 0 success; 1 internal error (traceback printed) or failed steps; 2 user error (a message
+naming what to fix, no traceback; see pipeline.errors for the rule); 130 interrupted (Ctrl-C).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+from pathlib import Path
+
+COMMANDS = ["run", "status", "report", "scene", "models", "cache"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="dualnerf", description="Resumable batch pipeline for DualNeRF text-driven 3D scene editing.")
+    parser.add_argument("--cache", type=Path, default=None,
+                        help="result store folder (default: $DUALNERF_CACHE, else ./cache)")
+    parser.add_argument("--runs", type=Path, default=Path("runs"),
+                        help="folder for run records and step logs (default: ./runs)")
+    parser.add_argument("--quiet", action="store_true",
+                        help="no progress bars; a log line every ~10%% of a step instead")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        module_name = f"stages.commands.{name}"
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name == module_name:
+                continue      # that command is not written yet; any other missing module is a real error
+            raise
+        module.register(subparsers)
+    return parser
+
+
+def cache_dir(args: argparse.Namespace) -> Path:
+    """--cache, else $DUALNERF_CACHE, else ./cache."""
+    if args.cache is not None:
+        return Path(args.cache)
+    return Path(os.environ.get("DUALNERF_CACHE") or "cache")
+
+
+def open_store(args: argparse.Namespace):
+    from pipeline.store import Store
+
+    return Store(cache_dir(args))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    handler = getattr(args, "handler", None)
+    if handler is None:
+        parser.print_help()
+        return 2
+    from pipeline.errors import is_user_error
+
+    try:
+        return int(handler(args) or 0)
+    except KeyboardInterrupt:
+        print("dualnerf: interrupted; checkpoints are kept, rerun the same command to resume.", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        if is_user_error(exc):
+            print(f"dualnerf: error: {exc}", file=sys.stderr)
+            return 2
+        raise
+
+
+if __name__ == "__main__":
+    sys.exit(main())
