@@ -1,0 +1,104 @@
+"""Turn a Reconstruction into the normalised dataset: read, undistort, resize, normalise, split."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from dualnerf.dataset import Dataset
+from dualnerf.io.errors import InputError
+from dualnerf.io.images import read_image, resize_long_side, resized_shape
+from dualnerf.io.normalise import apply_normalisation, fit_normalisation, near_far
+from dualnerf.io.reconstruction import Reconstruction
+
+
+def split_for(n: int, holdout_every: int) -> list[str]:
+    """Every `holdout_every`-th view (0, k, 2k, ...) is held out; 0 disables the held-out set."""
+    if holdout_every <= 0:
+        return ["train"] * n
+    return ["heldout" if i % holdout_every == 0 else "train" for i in range(n)]
+
+
+def check_uniform_size(names: list[str], sizes: np.ndarray, where: str) -> None:
+    """The dataset stores one image size; name the views whose size differs from the majority."""
+    keys, counts = np.unique(sizes, axis=0, return_counts=True)
+    if len(keys) <= 1:
+        return
+    common = keys[np.argmax(counts)]
+    odd = [f"{names[i]} ({sizes[i][0]}x{sizes[i][1]})" for i in range(len(names))
+           if not np.array_equal(sizes[i], common)]
+    raise InputError(f"{where}: images must all have the same resolution; most are {common[0]}x{common[1]} "
+                     f"but these differ: {', '.join(odd[:20])}{' ...' if len(odd) > 20 else ''}. Resize or "
+                     f"remove them.")
+
+
+def build_dataset(recon: Reconstruction, max_size: int, holdout_every: int, source: dict) -> Dataset:
+    import cv2
+
+    check_uniform_size(recon.names, recon.sizes, "input")
+    images, intrinsics = [], []
+    for i, path in enumerate(recon.image_paths):
+        image = read_image(path)
+        w, h = int(recon.sizes[i][0]), int(recon.sizes[i][1])
+        if image.shape[:2] != (h, w):
+            raise InputError(f"{path} is {image.shape[1]}x{image.shape[0]} but its camera says {w}x{h}; fix "
+                             f"the intrinsics (w, h) or the image.")
+        fx, fy, cx, cy = recon.intrinsics[i]
+        if np.any(recon.distortion[i] != 0):
+            # Undistort to a pinhole camera with the same K: the dataset format is pinhole only.
+            k = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])   # OpenCV: pixel centre = integer
+            image = cv2.undistort(image, k, recon.distortion[i])
+        image = resize_long_side(image, max_size)
+        sx, sy = image.shape[1] / w, image.shape[0] / h
+        images.append(image)
+        intrinsics.append([fx * sx, fy * sy, cx * sx, cy * sy])
+    scale, offset = fit_normalisation(recon.c2w[:, :3, 3], recon.points)
+    c2w = apply_normalisation(recon.c2w, scale, offset)
+    points = None if recon.points is None else scale * (recon.points + offset)
+    intrinsics = np.array(intrinsics)
+    height, width = images[0].shape[:2]
+    sizes = np.tile([width, height], (len(images), 1))
+    near, far = near_far(c2w, intrinsics, sizes, points)
+    return Dataset(images=np.stack(images), c2w=c2w, intrinsics=intrinsics, near=near, far=far,
+                   names=list(recon.names), split=split_for(len(images), holdout_every),
+                   normalisation={"scale": float(scale), "offset": [float(v) for v in offset]},
+                   source=source)
+
+
+def carry_scene_files(source: Path, out: Path, names: list[str], size: tuple[int, int]) -> list[str]:
+    """Copy scene.toml and gt/edits/<id>/{images,masks}/<name> of the registered views into `out`,
+    resized to the dataset's (width, height) exactly as the views were. Returns the edit ids carried.
+
+    A resized mask marks a pixel changed when any source pixel under it changed, so the ground-truth
+    edited view still equals the original wherever the mask is 0.
+    """
+    import cv2
+
+    source, out = Path(source), Path(out)
+    if (source / "scene.toml").is_file():
+        shutil.copyfile(source / "scene.toml", out / "scene.toml")
+    edits_dir = source / "gt" / "edits"
+    carried = []
+    if not edits_dir.is_dir():
+        return carried
+    for edit_dir in sorted(p for p in edits_dir.iterdir() if p.is_dir()):
+        for kind in ("images", "masks"):
+            (out / "gt" / "edits" / edit_dir.name / kind).mkdir(parents=True, exist_ok=True)
+        for name in names:
+            src_img, src_mask = edit_dir / "images" / name, edit_dir / "masks" / name
+            if not src_img.is_file():
+                continue
+            image = read_image(src_img)
+            mask = cv2.imread(str(src_mask), cv2.IMREAD_GRAYSCALE)
+            if mask is None:
+                raise InputError(f"{src_mask} is missing or unreadable; every ground-truth edited view needs "
+                                 f"a mask.")
+            if image.shape[1::-1] != tuple(size):
+                image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+                mask = cv2.resize((mask > 127).astype(np.float32), size, interpolation=cv2.INTER_AREA)
+                mask = (mask > 0).astype(np.uint8) * 255
+            cv2.imwrite(str(out / "gt/edits" / edit_dir.name / "images" / name), image[..., ::-1])
+            cv2.imwrite(str(out / "gt/edits" / edit_dir.name / "masks" / name), mask)
+        carried.append(edit_dir.name)
+    return carried

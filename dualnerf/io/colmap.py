@@ -1,0 +1,94 @@
+"""Read a COLMAP sparse model (cameras/images/points3D, .bin or .txt) into a Reconstruction."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dualnerf.io.errors import InputError
+from dualnerf.io.reconstruction import Reconstruction
+
+# COLMAP model name -> how its params map to (fx, fy, cx, cy) and OpenCV distortion (k1, k2, p1, p2, k3).
+_MODELS = {
+    "SIMPLE_PINHOLE": lambda p: ((p[0], p[0], p[1], p[2]), (0, 0, 0, 0, 0)),
+    "PINHOLE": lambda p: ((p[0], p[1], p[2], p[3]), (0, 0, 0, 0, 0)),
+    "SIMPLE_RADIAL": lambda p: ((p[0], p[0], p[1], p[2]), (p[3], 0, 0, 0, 0)),
+    "RADIAL": lambda p: ((p[0], p[0], p[1], p[2]), (p[3], p[4], 0, 0, 0)),
+    "OPENCV": lambda p: ((p[0], p[1], p[2], p[3]), (p[4], p[5], p[6], p[7], 0)),
+}
+
+
+def find_model(source: Path) -> Path | None:
+    """The sparse model folder in `source` (itself, sparse/0 or sparse), else None."""
+    source = Path(source)
+    for candidate in (source, source / "sparse" / "0", source / "sparse"):
+        if any((candidate / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
+            return candidate
+    return None
+
+
+def find_image_folder(source: Path, model_dir: Path) -> Path:
+    for candidate in (Path(source) / "images", model_dir.parent / "images", model_dir.parent.parent / "images"):
+        if candidate.is_dir():
+            return candidate
+    raise InputError(f"{model_dir}: found a COLMAP model but no images/ folder next to it (looked in "
+                     f"{Path(source) / 'images'} and the model's parent folders); put the images there.")
+
+
+def reconstruction_from_pycolmap(model, image_dir: Path, total: int | None = None) -> Reconstruction:
+    """Convert a pycolmap.Reconstruction (COLMAP world->camera poses) into our Reconstruction."""
+    names, paths, c2w, intrinsics, sizes, distortion = [], [], [], [], [], []
+    for image_id in sorted(model.images, key=lambda k: model.images[k].name):
+        image = model.images[image_id]
+        if not image.has_pose:
+            continue
+        camera = model.cameras[image.camera_id]
+        model_name = camera.model.name
+        if model_name not in _MODELS:
+            raise InputError(f"{image_dir}: camera model {model_name} is not supported (supported: "
+                             f"{', '.join(_MODELS)}); undistort with `colmap image_undistorter` first.")
+        k, dist = _MODELS[model_name](np.asarray(camera.params, dtype=np.float64))
+        w2c = np.eye(4)
+        w2c[:3, :] = image.cam_from_world().matrix()
+        names.append(Path(image.name).name)
+        paths.append(image_dir / image.name)
+        c2w.append(np.linalg.inv(w2c))
+        # COLMAP puts pixel centres at integer + 0.5 too, so cx, cy carry over unchanged.
+        intrinsics.append(k)
+        sizes.append([camera.width, camera.height])
+        distortion.append(dist)
+    points = np.array([p.xyz for p in model.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    registered = len(names)
+    errors = [p.error for p in model.points3D.values()]
+    report = {"registered": registered, "total": total if total is not None else registered,
+              "points": int(len(points)),
+              "mean_reprojection_error": float(np.mean(errors)) if errors else None}
+    return Reconstruction(names=names, image_paths=paths, c2w=np.array(c2w).reshape(-1, 4, 4),
+                          intrinsics=np.array(intrinsics).reshape(-1, 4),
+                          sizes=np.array(sizes, dtype=np.int64).reshape(-1, 2),
+                          distortion=np.array(distortion, dtype=np.float64).reshape(-1, 5),
+                          points=points if len(points) else None, report=report)
+
+
+def import_colmap_model(source: Path) -> Reconstruction:
+    import pycolmap
+
+    model_dir = find_model(source)
+    if model_dir is None:
+        raise InputError(f"{source}: no COLMAP model (cameras.bin/.txt) in it, in sparse/0 or in sparse.")
+    try:
+        model = pycolmap.Reconstruction(str(model_dir))
+    except Exception as err:    # pycolmap raises plain RuntimeError on malformed files
+        raise InputError(f"{model_dir}: the COLMAP model could not be read ({err}); re-export it.") from None
+    image_dir = find_image_folder(source, model_dir)
+    recon = reconstruction_from_pycolmap(model, image_dir)
+    recon.report["total"] = len(model.images)
+    recon.report["unregistered"] = sorted(Path(model.images[i].name).name for i in model.images
+                                          if not model.images[i].has_pose)
+    missing = [str(p) for p in recon.image_paths if not p.is_file()]
+    if missing:
+        raise InputError(f"{model_dir}: {len(missing)} image(s) of the model are missing: "
+                         f"{', '.join(missing[:10])}; copy them into {image_dir}.")
+    recon.method = "colmap"
+    recon.validate(str(model_dir))
+    return recon

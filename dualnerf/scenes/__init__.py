@@ -1,0 +1,7 @@
+"""Procedural test scenes with 3D-consistent ground-truth edits (synthetic renders, not photographs)."""
+from dualnerf.scenes.generate import SceneConfigError, generate_scene, scene_cameras, scene_config
+from dualnerf.scenes.library import SCENES, SceneConfig
+from dualnerf.scenes.spec import EditSpec, SceneSpec, SceneSpecError, load_gt_edit, load_scene_spec
+
+__all__ = ["SCENES", "SceneConfig", "SceneConfigError", "generate_scene", "scene_cameras", "scene_config",
+           "EditSpec", "SceneSpec", "SceneSpecError", "load_gt_edit", "load_scene_spec"]

@@ -1,0 +1,91 @@
+"""Procedural surface colours (albedo) from 3D noise in world coordinates.
+
+A material is a palette of three colours and a pattern; the edits of a scene swap palettes of tagged
+materials (a local recolouring such as "turn the tent blue") or lay snow on upward-facing surfaces.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dualnerf.scenes.noise import _hash01, fbm
+
+Palette = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+
+
+def _smoothstep(edge0: float, edge1: float, x: np.ndarray) -> np.ndarray:
+    t = np.clip((x - edge0) / (edge1 - edge0), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+@dataclass(frozen=True)
+class Material:
+    """`pattern`: "mottled" (base/second colour blend with patches of the third), "planks" (wood boards
+    across `plank_axis`), or "sky" (emissive background: distant hills below a noisy horizon, clouds above).
+    `frequency` is in cycles per metre for the coarsest octave; `tag` names it for edits."""
+
+    tag: str
+    palette: Palette
+    pattern: str = "mottled"
+    frequency: float = 1.0
+    octaves: int = 6
+    patch_amount: float = 0.3
+    detail: float = 0.35
+    plank_axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    plank_width: float = 0.12
+    emissive: bool = False
+
+    def albedo(self, p: np.ndarray, footprint: np.ndarray, seed: int, palette: Palette | None = None
+               ) -> np.ndarray:
+        colours = np.asarray(palette if palette is not None else self.palette, dtype=np.float32)
+        if self.pattern == "sky":
+            return self._sky(p, footprint, seed, colours)
+        blend = fbm(p, self.frequency, self.octaves, seed, footprint)
+        patches = fbm(p, self.frequency * 0.7, self.octaves - 1, seed + 1, footprint)
+        fine = fbm(p, self.frequency * 6.0, 4, seed + 2, footprint)
+        mix = _smoothstep(-0.12, 0.12, blend)[:, None]
+        colour = colours[0] * (1 - mix) + colours[1] * mix
+        patch = _smoothstep(0.1 - self.patch_amount * 0.3, 0.14 - self.patch_amount * 0.3, patches)[:, None]
+        colour = colour * (1 - patch) + colours[2] * patch
+        shade = 1.0 + self.detail * 2.5 * fine
+        if self.pattern == "planks":
+            u = p @ np.asarray(self.plank_axis) / self.plank_width
+            board = np.floor(u)
+            jitter = _hash01(board.astype(np.int64), np.zeros_like(board, dtype=np.int64),
+                             np.zeros_like(board, dtype=np.int64), seed) - 0.5
+            gap = _smoothstep(0.0, 0.08, u - board) * _smoothstep(1.0, 0.92, u - board)
+            shade = shade * (1.0 + 0.35 * jitter) * (0.45 + 0.55 * gap)
+        return np.clip(colour * shade[:, None], 0.0, 1.0).astype(np.float32)
+
+    def _sky(self, p: np.ndarray, footprint: np.ndarray, seed: int, colours: np.ndarray) -> np.ndarray:
+        # Directions from the dome centre: elevation picks hills (palette[0]) or sky (palette[1]),
+        # with clouds (palette[2]) in the sky.
+        direction = p / np.linalg.norm(p, axis=1, keepdims=True)
+        elevation = np.arcsin(np.clip(direction[:, 2], -1.0, 1.0))
+        flat = direction * np.array([1.0, 1.0, 0.0])
+        ridge = 0.10 + 0.5 * fbm(flat * 3.0, 1.0, 5, seed + 3)
+        hills = elevation < ridge
+        ground = fbm(p, self.frequency, self.octaves, seed + 4, footprint)
+        hill_colour = colours[0] * (1.0 + 2.2 * ground)[:, None]
+        cloud = fbm(direction * np.array([1.0, 1.0, 2.5]) * 2.0, 1.5, 6, seed + 5)
+        cloud_amount = _smoothstep(-0.02, 0.12, cloud)[:, None]
+        height = np.clip(elevation / (np.pi / 2), 0.0, 1.0)[:, None]
+        sky = colours[1] * (1.0 - 0.35 * height) + 0.2 * (1 - height)
+        sky = sky * (1 - cloud_amount) + colours[2] * cloud_amount
+        return np.clip(np.where(hills[:, None], hill_colour, sky), 0.0, 1.0).astype(np.float32)
+
+
+SNOW = ((0.93, 0.94, 0.97), (0.86, 0.88, 0.93), (0.97, 0.97, 0.98))
+
+
+def snow_cover(p: np.ndarray, normals: np.ndarray, footprint: np.ndarray, seed: int) -> np.ndarray:
+    """Fraction of snow on a surface: fresh snow settles on upward-facing surfaces, patchily."""
+    patchiness = fbm(p, 1.3, 5, seed + 11, footprint)
+    return _smoothstep(0.35, 0.7, normals[:, 2] + 0.8 * patchiness).astype(np.float32)
+
+
+def snow_albedo(p: np.ndarray, footprint: np.ndarray, seed: int) -> np.ndarray:
+    sparkle = fbm(p, 4.0, 5, seed + 12, footprint)
+    base = np.asarray(SNOW[0], dtype=np.float32)
+    return np.clip(base * (1.0 + 0.6 * sparkle)[:, None], 0.0, 1.0).astype(np.float32)

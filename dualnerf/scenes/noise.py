@@ -1,0 +1,80 @@
+"""Multi-octave 3D value noise in world coordinates, so a surface's texture is the same in every view.
+
+Each octave uses its own random rotation and offset of the lattice (drawn from the seed), so octaves do
+not line up and the pattern never repeats. Octaves finer than about two pixel footprints are faded
+out (a cheap analytic prefilter): aliased texture would differ between views and defeat SIFT matching.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+_PRIMES = np.array([0x8DA6B343, 0xD8163841, 0xCB1AB31F], dtype=np.uint32)
+
+
+def _hash01(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, salt: int) -> np.ndarray:
+    """A deterministic pseudo-random value in [0, 1) per integer lattice point (integer mixing hash)."""
+    h = (ix.astype(np.uint32) * _PRIMES[0]) ^ (iy.astype(np.uint32) * _PRIMES[1])
+    h ^= iz.astype(np.uint32) * _PRIMES[2]
+    h ^= np.uint32(salt & 0xFFFFFFFF)
+    h ^= h >> np.uint32(13)
+    h *= np.uint32(0x5BD1E995)
+    h ^= h >> np.uint32(15)
+    h *= np.uint32(0x27D4EB2D)
+    h ^= h >> np.uint32(16)
+    return h.astype(np.float32) * np.float32(1.0 / 4294967296.0)
+
+
+def value_noise(p: np.ndarray, salt: int) -> np.ndarray:
+    """Smoothly interpolated lattice noise at points p (N, 3) in lattice units; values in [0, 1)."""
+    cell = np.floor(p)
+    f = (p - cell).astype(np.float32)
+    w = f * f * (3.0 - 2.0 * f)          # smoothstep weights give a C1 pattern (no lattice creases)
+    i = cell.astype(np.int64)
+    ix0, iy0, iz0 = i[:, 0], i[:, 1], i[:, 2]
+    ix1, iy1, iz1 = ix0 + 1, iy0 + 1, iz0 + 1
+    wx, wy, wz = w[:, 0], w[:, 1], w[:, 2]
+
+    def lerp(a, b, t):
+        return a + (b - a) * t
+
+    x00 = lerp(_hash01(ix0, iy0, iz0, salt), _hash01(ix1, iy0, iz0, salt), wx)
+    x10 = lerp(_hash01(ix0, iy1, iz0, salt), _hash01(ix1, iy1, iz0, salt), wx)
+    x01 = lerp(_hash01(ix0, iy0, iz1, salt), _hash01(ix1, iy0, iz1, salt), wx)
+    x11 = lerp(_hash01(ix0, iy1, iz1, salt), _hash01(ix1, iy1, iz1, salt), wx)
+    return lerp(lerp(x00, x10, wy), lerp(x01, x11, wy), wz)
+
+
+def _octave_frames(seed: int, octaves: int) -> list[tuple[np.ndarray, np.ndarray, int]]:
+    rng = np.random.default_rng(seed)
+    frames = []
+    for _ in range(octaves):
+        q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+        rotation = q * np.sign(np.diag(r))     # a uniformly random orthogonal frame per octave
+        offset = rng.uniform(-1000.0, 1000.0, size=3)
+        frames.append((rotation, offset, int(rng.integers(0, 2**32))))
+    return frames
+
+
+def fbm(points: np.ndarray, frequency: float, octaves: int, seed: int,
+        footprint: np.ndarray | None = None, gain: float = 0.55, lacunarity: float = 2.03) -> np.ndarray:
+    """Fractal sum of value-noise octaves at world points (N, 3); zero-mean, roughly in [-0.5, 0.5].
+
+    `frequency` is in cycles per world unit for the first octave; `footprint` (N,) is the world size of
+    one pixel at each point, used to fade out octaves the image cannot resolve.
+    """
+    total = np.zeros(len(points), dtype=np.float32)
+    norm = 0.0
+    amplitude = 1.0
+    freq = frequency
+    for rotation, offset, salt in _octave_frames(seed, octaves):
+        p = (points @ rotation.T + offset) * freq
+        octave = value_noise(p, salt) - 0.5
+        if footprint is not None:
+            # Fade from full weight at 4 pixels per cycle to zero at 2 pixels per cycle.
+            cycles_per_pixel = freq * footprint
+            octave *= np.clip(2.0 - 4.0 * cycles_per_pixel, 0.0, 1.0).astype(np.float32)
+        total += np.float32(amplitude) * octave
+        norm += amplitude
+        amplitude *= gain
+        freq *= lacunarity
+    return total / np.float32(norm)

@@ -1,0 +1,116 @@
+"""Reading a procedural scene folder: its edit vocabulary and its ground-truth edited views.
+
+Scene folder layout (a contract other stages code against):
+    images/<name>.png                      original views, 8-bit RGB
+    scene.toml                             [scene] name, generator, seed, width, height
+                                           [[edits]] id, instruction, source_caption, target_caption
+    gt/transforms.json                     ground-truth cameras, nerfstudio convention
+    gt/edits/<edit_id>/images/<name>.png   ground-truth edited views (same cameras, edited materials)
+    gt/edits/<edit_id>/masks/<name>.png    8-bit masks, 255 where the edit changes the colour
+"""
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+SCENE_FILE = "scene.toml"
+GT_EDITS_DIR = Path("gt") / "edits"
+
+
+class SceneSpecError(ValueError):
+    """A scene folder whose scene.toml or ground truth cannot be used; the message says what to fix."""
+
+
+@dataclass(frozen=True)
+class EditSpec:
+    id: str
+    instruction: str
+    source_caption: str
+    target_caption: str
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    name: str
+    edits: tuple[EditSpec, ...]
+    generator: str = ""
+    seed: int = 0
+    width: int = 0
+    height: int = 0
+
+    def edit(self, id: str) -> EditSpec:
+        for spec in self.edits:
+            if spec.id == id:
+                return spec
+        known = ", ".join(e.id for e in self.edits) or "none"
+        raise SceneSpecError(f"scene '{self.name}' has no edit '{id}'; its edits are: {known}.")
+
+
+def load_scene_spec(folder: Path) -> SceneSpec:
+    path = Path(folder) / SCENE_FILE
+    try:
+        doc = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise SceneSpecError(
+            f"{path} is missing: this folder is not a scene folder (generate one with "
+            f"`dualnerf scene NAME --out DIR`)."
+        ) from None
+    except tomllib.TOMLDecodeError as err:
+        raise SceneSpecError(f"{path} is not valid TOML ({err}); fix or regenerate the scene.") from None
+    scene = doc.get("scene")
+    if not isinstance(scene, dict):
+        raise SceneSpecError(f"{path}: the [scene] table is missing; it needs name, generator, seed, "
+                             f"width and height.")
+    name = _field(scene, "name", str, path, "[scene]")
+    edits = []
+    for i, entry in enumerate(doc.get("edits", [])):
+        where = f"[[edits]] entry {i + 1}"
+        if not isinstance(entry, dict):
+            raise SceneSpecError(f"{path}: {where} must be a table.")
+        edits.append(EditSpec(**{key: _field(entry, key, str, path, where)
+                                 for key in ("id", "instruction", "source_caption", "target_caption")}))
+    ids = [e.id for e in edits]
+    if len(set(ids)) != len(ids):
+        raise SceneSpecError(f"{path}: edit ids must be unique, got {ids}.")
+    return SceneSpec(
+        name=name, edits=tuple(edits),
+        generator=str(scene.get("generator", "")), seed=int(scene.get("seed", 0)),
+        width=int(scene.get("width", 0)), height=int(scene.get("height", 0)),
+    )
+
+
+def _field(table: dict, key: str, kind: type, path: Path, where: str):
+    if key not in table:
+        raise SceneSpecError(f"{path}: {where} is missing the field '{key}'.")
+    value = table[key]
+    if not isinstance(value, kind) or (kind is str and not value.strip()):
+        raise SceneSpecError(f"{path}: {where} field '{key}' must be a non-empty {kind.__name__}, "
+                             f"got {value!r}.")
+    return value
+
+
+def load_gt_edit(folder: Path, edit_id: str, name: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """The ground-truth edited view and its mask for image `name`, or None when the folder has none.
+
+    `name` is the original image file name (e.g. "view_003.png"); returns (uint8 HxWx3 RGB, bool HxW).
+    """
+    import cv2
+
+    base = Path(folder) / GT_EDITS_DIR / edit_id
+    image_path, mask_path = base / "images" / name, base / "masks" / name
+    if not image_path.exists():
+        return None
+    image = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
+    mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        raise SceneSpecError(f"{image_path} is unreadable; regenerate the scene's ground truth.")
+    if mask is None:
+        raise SceneSpecError(f"{mask_path} is missing or unreadable; every ground-truth edited view needs "
+                             f"its mask, regenerate the scene's ground truth.")
+    if mask.shape != image.shape[:2]:
+        raise SceneSpecError(f"{mask_path} is {mask.shape[1]}x{mask.shape[0]} but its image is "
+                             f"{image.shape[1]}x{image.shape[0]}; regenerate the scene's ground truth.")
+    return np.ascontiguousarray(image[..., ::-1]), mask > 127
