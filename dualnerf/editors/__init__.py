@@ -46,3 +46,24 @@ def to_float_image(image: np.ndarray, what: str = "image") -> np.ndarray:
 
 def to_uint8_image(image: np.ndarray) -> np.ndarray:
     return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def load_editor(kind: str, *, instruction: str, model: str | None = None, device: str = "cpu",
+                scene_folder=None, edit_id: str | None = None, names=None, originals=None,
+                emulator_config=None) -> Editor:
+    """Build an editor. "ip2p" needs `model` (a local diffusers folder or hub id); "synthetic" (the
+    InstructPix2Pix EMULATOR) needs the folder with scene.toml + gt/edits/, the edit id, and the training
+    views' names and original images."""
+    if kind == "ip2p":
+        from dualnerf.editors.ip2p import IP2P_HUB_ID, InstructPix2PixConfig, InstructPix2PixEditor
+
+        return InstructPix2PixEditor(model or IP2P_HUB_ID, InstructPix2PixConfig(device=device))
+    if kind == "synthetic":
+        from dualnerf.editors.emulator import EmulatorConfig, InstructPix2PixEmulator
+
+        if scene_folder is None or edit_id is None or names is None or originals is None:
+            raise EditorError("editor 'synthetic' (InstructPix2Pix emulator) needs a scene folder with "
+                              "scene.toml and gt/edits/, an edit_id, and the training views.")
+        return InstructPix2PixEmulator.from_scene_folder(scene_folder, edit_id, instruction, names, originals,
+                                                         emulator_config or EmulatorConfig())
+    raise EditorError(f"unknown editor '{kind}'; choose one of: {', '.join(EDITOR_KINDS)}.")
