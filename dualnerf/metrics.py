@@ -191,14 +191,19 @@ def psnr(a, b, mask=None) -> float:
 
 def ssim(a, b, mask=None) -> float:
     """Structural similarity (Wang et al. 2004: Gaussian window sigma 1.5, K1 0.01, K2 0.03, data range
-    1), averaged over colour channels; with a mask, the SSIM map is averaged over the masked pixels (the
-    window still sees neighbouring unmasked pixels). nan for an empty mask."""
+    1), averaged over colour channels. With a mask, the second image's pixels are pasted into the first
+    outside the mask, so only differences inside the mask count (a window straddling the mask edge does
+    not see differences from the other side), and the SSIM map is averaged over the masked pixels
+    (image borders included, unlike the unmasked mean, which skimage takes over the interior). nan for
+    an empty mask."""
     from skimage.metrics import structural_similarity
 
     x, y, mask = _pair_images(a, b, mask, ("first image", "second image"))
     if min(x.shape[:2]) < SSIM_WINDOW:
         raise MetricInputError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got "
                                f"{x.shape[1]}x{x.shape[0]}; render at a higher resolution.")
+    if mask is not None:
+        x = np.where(mask[..., None], x, y)
     mean, full = structural_similarity(x, y, channel_axis=-1, data_range=1.0, gaussian_weights=True,
                                        sigma=SSIM_SIGMA, use_sample_covariance=False, full=True)
     if mask is None:
@@ -217,3 +222,26 @@ def mean_over_views(pairs, metric, masks=None) -> float:
     values = np.asarray(values, dtype=np.float64)
     finite_or_inf = values[~np.isnan(values)]
     return float(np.mean(finite_or_inf)) if finite_or_inf.size else float("nan")
+
+
+def ground_truth_metrics(edited_renders, gt_edits, masks, original_views) -> dict[str, float]:
+    """Ground-truth metrics over views (procedural scenes, where the edited scene is known):
+    edit fidelity (edited render vs GT edited view, whole image), background preservation (outside the
+    edit mask vs the original view) and the edit itself (inside the mask vs the GT edited view).
+    Each is the mean over views; masked values skip views whose mask region is empty."""
+    n = len(edited_renders)
+    if not (n and len(gt_edits) == n and len(masks) == n and len(original_views) == n):
+        raise MetricInputError(f"ground-truth metrics need one GT edit, mask and original view per render, "
+                               f"got {n} renders, {len(gt_edits)} GT edits, {len(masks)} masks and "
+                               f"{len(original_views)} original views.")
+    outside = [~np.asarray(m, dtype=bool) for m in masks]
+    vs_gt = list(zip(edited_renders, gt_edits))
+    vs_original = list(zip(edited_renders, original_views))
+    return {
+        "gt_psnr_edit": mean_over_views(vs_gt, psnr),
+        "gt_ssim_edit": mean_over_views(vs_gt, ssim),
+        "gt_psnr_background": mean_over_views(vs_original, psnr, outside),
+        "gt_ssim_background": mean_over_views(vs_original, ssim, outside),
+        "gt_psnr_inside": mean_over_views(vs_gt, psnr, masks),
+        "gt_ssim_inside": mean_over_views(vs_gt, ssim, masks),
+    }

@@ -128,13 +128,14 @@ def test_masked_psnr_and_ssim_closed_form():
     mse = (32 * 0.04 + 224 * 1e-4) / 256
     assert metrics.psnr(edited, original) == pytest.approx(10 * math.log10(1 / mse))
     assert np.isnan(metrics.psnr(edited, original, np.zeros((16, 16), dtype=bool)))
-    # Masked SSIM: background far from the edit sees only a constant shift, the luminance closed form.
+    # Masked SSIM only sees differences inside its mask: whatever the edited image holds outside the
+    # mask does not change the value.
     far = np.zeros((16, 16), dtype=bool)
-    far[14:, :] = True
-    c1 = 1e-4
-    expected = (2 * 0.5 * 0.51 + c1) / (0.5 ** 2 + 0.51 ** 2 + c1)
-    # Gaussian window truncated at 3.5 sigma (radius 5): rows 14-15 are more than 5 rows from row 7.
-    assert metrics.ssim(edited, original, far) == pytest.approx(expected, rel=1e-6)
+    far[12:, :] = True
+    scrambled = edited.copy()
+    scrambled[~far] = np.random.default_rng(4).uniform(size=scrambled[~far].shape)
+    assert metrics.ssim(scrambled, original, far) == pytest.approx(metrics.ssim(edited, original, far))
+    assert metrics.ssim(scrambled, original, far) < 1.0
     assert metrics.ssim(edited, original, mask) < metrics.ssim(edited, original, far)
 
 
@@ -157,3 +158,34 @@ def test_mean_over_views_skips_empty_masks():
     assert metrics.mean_over_views([(a, b), (a, b)], metrics.psnr, [full, empty]) == pytest.approx(20.0)
     assert np.isnan(metrics.mean_over_views([(a, b)], metrics.psnr, [empty]))
 
+
+
+def test_ground_truth_metrics_closed_form():
+    # Two views of a known scene: the GT edit turns the masked square white; the "render" gets the
+    # background off by 0.01 (40 dB) and the edit off by 0.1 (20 dB).
+    original = [np.full((16, 16, 3), 0.3), np.full((16, 16, 3), 0.6)]
+    masks = []
+    gt, render = [], []
+    for view, (r0, c0) in zip(original, [(2, 2), (8, 6)]):
+        mask = np.zeros((16, 16), bool)
+        mask[r0:r0 + 6, c0:c0 + 6] = True
+        masks.append(mask)
+        edit = view.copy()
+        edit[mask] = 1.0
+        gt.append(edit)
+        out = view + 0.01
+        out[mask] = 0.9
+        render.append(out)
+    values = metrics.ground_truth_metrics(render, gt, masks, original)
+    assert values["gt_psnr_background"] == pytest.approx(40.0)
+    assert values["gt_psnr_inside"] == pytest.approx(20.0)
+    # Whole image vs GT: 36 pixels at error 0.1, 220 at 0.01.
+    mse = (36 * 0.01 + 220 * 1e-4) / 256
+    assert values["gt_psnr_edit"] == pytest.approx(10 * math.log10(1 / mse))
+    assert 0 < values["gt_ssim_inside"] < values["gt_ssim_background"] <= 1.0
+    # A perfect edit scores SSIM 1 / PSNR inf everywhere.
+    perfect = metrics.ground_truth_metrics(gt, gt, masks, original)
+    assert perfect["gt_ssim_edit"] == pytest.approx(1.0) and perfect["gt_psnr_edit"] == math.inf
+    assert perfect["gt_psnr_background"] == math.inf
+    with pytest.raises(metrics.MetricInputError, match="one GT edit"):
+        metrics.ground_truth_metrics(render, gt[:1], masks, original)
