@@ -1,0 +1,76 @@
+"""Process-pool and Ray executors give the same results as serial on a small DAG."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pipeline.dag import External, Step
+from pipeline.executors import ProcessPoolExecutor, SerialExecutor, cpu_count
+from pipeline.runner import run_steps
+from pipeline.store import Store
+from tests.pipeline_stages import REGISTRY
+from tests.test_pipeline_store import tree_digest
+
+
+def small_dag(tmp_path: Path, threads_file: Path) -> list[Step]:
+    source = tmp_path / "source"
+    source.mkdir(exist_ok=True)
+    (source / "a.txt").write_text("hello")
+    (source / "b.txt").write_text("world!")
+    digest = Step("digest", {"scale": 3}, {"source": External(source)}, label="digest")
+    counts = [Step("count", {"n": n}, label=f"count{n}") for n in (3, 4, 5)]
+    left = Step("add", {"value": 1.5, "threads_seen": str(threads_file)}, {"left": counts[0], "right": counts[1]},
+                label="left")
+    right = Step("add", {"value": -2.0}, {"left": counts[2], "right": digest}, label="right")
+    top = Step("add", {}, {"left": left, "right": right}, label="top")
+    duplicate = Step("count", {"n": 4}, label="count4-again")    # same key as counts[1]: computed once
+    bad = Step("fail", {}, {"left": counts[0]}, label="bad")
+    return [top, duplicate, bad]
+
+
+def outputs(result) -> dict[str, tuple[str, dict]]:
+    return {step.label: (result.status[step], tree_digest(path) if path else None)
+            for step, path in ((s, result.results.get(s)) for s in result.status)}
+
+
+def run_with(executor, tmp_path: Path, name: str):
+    steps = small_dag(tmp_path, tmp_path / f"threads-{name}")
+    store = Store(tmp_path / f"cache-{name}")
+    return run_steps(steps, registry=REGISTRY, store=store, executor=executor, run_dir=tmp_path / "runs" / name,
+                     quiet=True)
+
+
+@pytest.fixture
+def serial(tmp_path):
+    return run_with(SerialExecutor(threads=1), tmp_path, "serial")
+
+
+def check_same(serial, other):
+    expected = outputs(serial)
+    assert outputs(other) == expected
+    assert expected["top"][0] == "done" and expected["bad"][0] == "failed" and expected["count4-again"][0] == "done"
+    top = next(path for step, path in serial.results.items() if step.label == "top")
+    # left = 1.5 + (0+1+2) + (0+1+2+3); right = -2 + (0+1+2+3+4) + 3 * len("hello" + "world!")
+    assert float((top / "total.txt").read_text()) == (1.5 + 3 + 6) + (-2.0 + 10 + 3 * 11)
+    assert sorted(p.name for p in serial.results.values()) == sorted(p.name for p in other.results.values())
+
+
+@pytest.mark.slow
+def test_process_pool_matches_serial(tmp_path, serial):
+    pool = run_with(ProcessPoolExecutor(jobs=2), tmp_path, "pool")
+    check_same(serial, pool)
+    assert (tmp_path / "threads-pool").read_text() == str(max(1, cpu_count() // 2))
+
+
+@pytest.mark.slow
+def test_ray_matches_serial(tmp_path, serial):
+    ray = pytest.importorskip("ray")
+    from pipeline.executors import RayExecutor
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        result = run_with(RayExecutor(), tmp_path, "ray")
+    finally:
+        ray.shutdown()
+    check_same(serial, result)
