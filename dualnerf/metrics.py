@@ -245,3 +245,16 @@ def ground_truth_metrics(edited_renders, gt_edits, masks, original_views) -> dic
         "gt_psnr_inside": mean_over_views(vs_gt, psnr, masks),
         "gt_ssim_inside": mean_over_views(vs_gt, ssim, masks),
     }
+
+
+def clip_metrics(edited, original, target_text=None, source_text=None) -> dict[str, float]:
+    """Every CLIP-space metric for one camera path (embeddings per frame, in path order). Without caption
+    embeddings C_t2i is nan (undefined, reported as null)."""
+    values = {"clip_text_image_direction": float("nan")}
+    if target_text is not None and source_text is not None:
+        values["clip_text_image_direction"] = clip_text_image_direction(edited, original, target_text,
+                                                                        source_text)
+    values["clip_direction_consistency"] = clip_direction_consistency(edited, original)
+    values["clip_edit_direction_consistency"] = clip_edit_direction_consistency(edited, original)
+    values["clip_frame_consistency"] = clip_frame_consistency(edited)
+    return values

@@ -1,0 +1,287 @@
+"""Stage "evaluate": render a fixed camera path and held-out views from the original model (f_S) and
+the edited model, and compute the metrics of docs/metrics.md.
+
+Inputs: "dataset" (preprocess result, with scene.toml and gt/edits/ on procedural scenes), "fit" (its
+model/ is f_S) and, optionally, "edit" (its model/ is the edited model). Without "edit" the unedited
+scene is evaluated (the report's "Original Scene" row): the edited renders are the original ones.
+
+Outputs:
+    metrics.json                      every metric with its direction and, for CLIP-space metrics, the
+                                      encoder that produced it (proxy numbers are tagged "proxy")
+    frames/original/0000.png ...      path renders of f_S
+    frames/edited/0000.png ...        path renders of the edited model
+    path.mp4                          the edited path video (mp4v)
+    views/{original,edited}/<name>    renders at the fixed views (held-out frames; training frames if
+    views/{gt_edit,gt_mask}/<name>    the dataset holds none out), plus ground truth where it exists
+    camera_path.json                  the path's c2w matrices and how it was built
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.stage import Resources, Stage, StageContext
+
+PATH_FPS = 24.0
+FALLBACK_VIEWS = 4          # fixed views taken from the training frames when none are held out
+ENCODE_BATCH = 16
+
+
+class EvaluateError(ValueError):
+    """An evaluate input or parameter that cannot be used; the message says what to change."""
+
+
+@dataclass(frozen=True)
+class EvaluateParams:
+    n_frames: int = 60
+    encoder: str = "proxy"              # "proxy" (weight-free stand-in, NOT CLIP) or "clip"
+    encoder_model: str = ""             # CLIP model folder (dualnerf models export-clip) for encoder "clip"
+    source_caption: str = ""            # default: the edit's captions from the scene's scene.toml
+    target_caption: str = ""
+    edit_id: str = ""                   # ground-truth edit to compare against on procedural scenes
+    device: str = "cpu"
+    num_threads: int = 0                # non-semantic; 0: the threads the engine grants
+    chunk: int = 8192                   # non-semantic: rays per rendering batch
+
+
+class EvaluateStage(Stage):
+    name = "evaluate"
+    version = "1"
+    Params = EvaluateParams
+    upstream = ("dataset", "fit", "edit")
+    resources = Resources(cpus=2, gpus=0, memory_gb=3)
+    nonsemantic_params = frozenset({"num_threads", "chunk"})
+    packages = ("torch", "onnxruntime")
+
+    def run(self, ctx: StageContext) -> None:
+        import numpy as np
+        import torch
+
+        from dualnerf.camera_path import smooth_camera_path
+        from dualnerf.dataset import load_dataset
+        from dualnerf.metrics import (METRICS, METRICS_FORMAT, METRICS_VERSION, clip_metrics,
+                                      ground_truth_metrics, json_value, mean_over_views, ssim)
+        from dualnerf.model import load_model, saved_blend
+        from dualnerf.video import write_mp4
+
+        p = ctx.params
+        if p.n_frames < 2:
+            raise EvaluateError(f"evaluate: n_frames must be at least 2 (adjacent-frame metrics), got {p.n_frames}.")
+        if p.device.startswith("cuda") and not torch.cuda.is_available():
+            raise EvaluateError(f"evaluate: device '{p.device}' was requested but torch sees no CUDA device; "
+                                f"use device='cpu'.")
+        torch.set_num_threads(max(1, p.num_threads or ctx.threads))
+        data_dir = Path(ctx.inputs["dataset"])
+        dataset = load_dataset(data_dir)
+        edit_dir = ctx.inputs.get("edit")
+        static = load_model(Path(ctx.inputs["fit"]) / "model", p.device).eval()
+        edited = None if edit_dir is None else load_model(Path(edit_dir) / "model", p.device).eval()
+        blend = None if edited is None else saved_blend(edited)
+
+        edit_spec = _edit_captions(data_dir, p)
+        train = dataset.indices("train")
+        if len(train) < 2:
+            raise EvaluateError(f"{data_dir}: the dataset has {len(train)} training frame(s); a camera path "
+                                f"needs at least 2.")
+        path = smooth_camera_path(dataset.c2w[train], n_frames=p.n_frames)
+        key_frames = [int(train[i]) for i in path.key_indices]
+        ref = int(train[0])
+        near, far = float(dataset.near[train].min()), float(dataset.far[train].max())
+        width, height = dataset.width, dataset.height
+
+        def render(model, model_blend, c2w, intrinsics):
+            from dualnerf.rendering import render_view
+
+            image = render_view(model, c2w, intrinsics, width, height, near, far, blend=model_blend,
+                                chunk=p.chunk)
+            return (image.numpy() * 255.0 + 0.5).astype(np.uint8)
+
+        view_ids = dataset.indices("heldout")
+        view_split = "heldout"
+        if len(view_ids) == 0:
+            view_split = "train"
+            view_ids = train[np.round(np.linspace(0, len(train) - 1, min(FALLBACK_VIEWS, len(train)))).astype(int)]
+        models = [("original", static, None)] + ([] if edited is None else [("edited", edited, blend)])
+        frames: dict[str, list] = {"original": [], "edited": []}
+        views: dict[str, list] = {"original": [], "edited": []}
+        total = len(models) * (len(path.c2w) + len(view_ids))
+        with ctx.progress(total, "render path and views") as bar:
+            for kind, model, model_blend in models:
+                for c2w in path.c2w:
+                    frames[kind].append(render(model, model_blend, c2w, dataset.intrinsics[ref]))
+                    bar.update()
+                for i in view_ids:
+                    views[kind].append(render(model, model_blend, dataset.c2w[i], dataset.intrinsics[i]))
+                    bar.update()
+        if edited is None:                    # the unedited scene: edited renders are the original ones
+            frames["edited"], views["edited"] = frames["original"], views["original"]
+
+        out = ctx.out_dir
+        for kind in ("original", "edited"):
+            for n, frame in enumerate(frames[kind]):
+                _write_png(out / "frames" / kind / f"{n:04d}.png", frame)
+        view_names = [dataset.names[i] for i in view_ids]
+        for kind in ("original", "edited"):
+            for name, image in zip(view_names, views[kind]):
+                _write_png(out / "views" / kind / name, image)
+        write_mp4(frames["edited"], out / "path.mp4", fps=PATH_FPS)
+        (out / "camera_path.json").write_text(json.dumps(
+            {**path.describe(), "key_frames": key_frames, "key_names": [dataset.names[i] for i in key_frames],
+             "intrinsics": dataset.intrinsics[ref].tolist(), "width": width, "height": height,
+             "near": near, "far": far, "fps": PATH_FPS, "c2w": path.c2w.tolist()}, indent=1))
+
+        values: dict[str, float] = {}
+        notes: dict[str, str] = {}
+        # Background maintenance in the paper's sense: SSIM between original and edited path renders.
+        values["ssim_edited_vs_original"] = mean_over_views(zip(frames["original"], frames["edited"]), ssim)
+
+        gt = _ground_truth(data_dir, p.edit_id, dataset, view_ids)
+        if gt is not None:
+            gt_images, gt_masks = gt
+            values.update(ground_truth_metrics(views["edited"], gt_images, gt_masks,
+                                               [dataset.images[i] for i in view_ids]))
+            for name, image, mask in zip(view_names, gt_images, gt_masks):
+                _write_png(out / "views" / "gt_edit" / name, image)
+                _write_png(out / "views" / "gt_mask" / name, np.repeat(mask[..., None], 3, -1).astype(np.uint8) * 255)
+        elif p.edit_id:
+            notes["ground_truth"] = (f"no ground-truth views for edit '{p.edit_id}' in {data_dir / 'gt' / 'edits'}; "
+                                     f"ground-truth metrics are not computed (real scenes have none).")
+
+        encoder, encoder_tag, captions_note = _encoder(p, data_dir, dataset, train, edit_spec)
+        if captions_note:
+            notes["clip_text_image_direction"] = captions_note
+        e_orig = _encode(encoder, frames["original"])
+        e_edit = e_orig if edited is None else _encode(encoder, frames["edited"])
+        target = source = None
+        if captions_note is None:
+            target, source = encoder.encode_texts([edit_spec["target_caption"], edit_spec["source_caption"]])
+        values.update(clip_metrics(e_edit, e_orig, target, source))
+
+        editor = _editor_identity(edit_dir)
+        metrics_doc = {}
+        for name, value in values.items():
+            info = METRICS[name]
+            entry = {"value": json_value(value), "symbol": info.symbol, "higher_is_better": info.higher_is_better}
+            if info.uses_encoder:
+                entry["encoder"] = encoder_tag
+            if name in notes:
+                entry["note"] = notes[name]
+            metrics_doc[name] = entry
+        doc = {
+            "format": METRICS_FORMAT, "version": METRICS_VERSION, "edited": edited is not None,
+            "encoder": {**encoder.identity, "tag": encoder_tag}, "editor": editor,
+            "edit_id": p.edit_id, "source_caption": edit_spec["source_caption"],
+            "target_caption": edit_spec["target_caption"], "render_blend": None if blend is None else list(blend),
+            "camera_path": {**path.describe(), "key_frames": key_frames},
+            "views": {"names": view_names, "split": view_split},
+            "notes": notes, "metrics": metrics_doc,
+        }
+        (out / "metrics.json").write_text(json.dumps(doc, indent=1))
+        ctx.record(encoder=doc["encoder"], encoder_tag=encoder_tag, editor=editor,
+                   camera_path=doc["camera_path"], views=doc["views"],
+                   randomness="none: rendering uses bin-centre samples, no random draws")
+        summary = ", ".join(f"{METRICS[k].symbol}={v:.4g}" for k, v in values.items() if np.isfinite(v))
+        ctx.log.info("evaluate (%s encoder %s): %s", "edited" if edited is not None else "original scene",
+                     encoder_tag, summary)
+
+
+def _write_png(path: Path, image) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), image[..., ::-1]):
+        raise OSError(f"could not write {path}")
+
+
+def _edit_captions(data_dir: Path, p: EvaluateParams) -> dict:
+    """Source/target captions: the params, else the scene's scene.toml entry for edit_id."""
+    captions = {"source_caption": p.source_caption, "target_caption": p.target_caption}
+    if (not p.source_caption or not p.target_caption) and p.edit_id and (data_dir / "scene.toml").exists():
+        from dualnerf.scenes.spec import load_scene_spec
+
+        spec = load_scene_spec(data_dir).edit(p.edit_id)
+        captions["source_caption"] = p.source_caption or spec.source_caption
+        captions["target_caption"] = p.target_caption or spec.target_caption
+    return captions
+
+
+def _ground_truth(data_dir: Path, edit_id: str, dataset, view_ids):
+    """(GT edited images, masks) at the fixed views, or None when the dataset has no ground truth."""
+    from dualnerf.scenes.spec import load_gt_edit
+
+    if not edit_id:
+        return None
+    found = [load_gt_edit(data_dir, edit_id, dataset.names[i]) for i in view_ids]
+    if any(f is None for f in found):
+        return None
+    for (image, _), i in zip(found, view_ids):
+        if image.shape != dataset.images[i].shape:
+            raise EvaluateError(f"{data_dir / 'gt' / 'edits' / edit_id / 'images' / dataset.names[i]} is "
+                                f"{image.shape[1]}x{image.shape[0]} but the dataset image is "
+                                f"{dataset.width}x{dataset.height}; regenerate the scene and rerun preprocess.")
+    return [f[0] for f in found], [f[1] for f in found]
+
+
+def _encoder(p: EvaluateParams, data_dir: Path, dataset, train, captions: dict):
+    """The image-text encoder, its tag for metric entries, and why C_t2i cannot be computed (or None)."""
+    import numpy as np
+
+    from dualnerf.encoders import load_encoder
+    from dualnerf.scenes.spec import load_gt_edit
+
+    missing_captions = not captions["source_caption"] or not captions["target_caption"]
+    if p.encoder == "clip":
+        encoder = load_encoder("clip", p.encoder_model or None)
+        identity = encoder.identity
+        tag = f"clip:{identity.get('model', '?')}@{str(identity.get('sha256', ''))[:12]}"
+        note = "no source/target caption given (set evaluate.source_caption/target_caption)" \
+            if missing_captions else None
+        return encoder, tag, note
+    if p.encoder != "proxy":
+        load_encoder(p.encoder)           # raises the encoder library's error naming the valid kinds
+    # The proxy defines a caption by images: the source caption by the original training views, the
+    # target caption by the ground-truth edited views (procedural scenes only).
+    vocabulary = {}
+    note = None
+    if missing_captions:
+        note = "no source/target caption given (set evaluate.source_caption/target_caption)"
+    else:
+        gt_edits = []
+        if p.edit_id:
+            for i in train:
+                found = load_gt_edit(data_dir, p.edit_id, dataset.names[i])
+                if found is not None:
+                    gt_edits.append(found[0])
+        if gt_edits:
+            vocabulary = {captions["source_caption"]: dataset.images[train],
+                          captions["target_caption"]: np.stack(gt_edits)}
+        else:
+            note = ("the proxy encoder (NOT CLIP) defines caption embeddings from ground-truth edited views, "
+                    "which this scene lacks; use encoder 'clip' for C_t2i on real scenes.")
+    return load_encoder("proxy", vocabulary=vocabulary), "proxy", note
+
+
+def _encode(encoder, frames):
+    import numpy as np
+
+    batches = [encoder.encode_images(np.stack(frames[s:s + ENCODE_BATCH]))
+               for s in range(0, len(frames), ENCODE_BATCH)]
+    return np.concatenate(batches, axis=0)
+
+
+def _editor_identity(edit_dir) -> dict | None:
+    """The editor that produced the edit result, from its manifest (record "editor", else the "editor"
+    parameter); None for the unedited scene."""
+    if edit_dir is None:
+        return None
+    manifest_path = Path(edit_dir) / "manifest.json"
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return {"kind": "unknown", "note": f"{manifest_path} missing or unreadable"}
+    recorded = manifest.get("record", {}).get("editor")
+    if isinstance(recorded, dict) and recorded.get("kind"):
+        return recorded
+    kind = manifest.get("params", {}).get("editor")
+    return {"kind": kind} if kind else {"kind": "unknown"}
