@@ -22,6 +22,8 @@ _EPS = 1e-9
 class CameraPathError(ValueError):
     """Poses a camera path cannot be built from; the message says what to change."""
 
+    user_error = True        # the CLI prints the message and exits 2 (pipeline.errors)
+
 
 @dataclass(frozen=True)
 class CameraPath:

@@ -24,6 +24,8 @@ _ZERO_NORM = 1e-12
 class MetricInputError(ValueError):
     """Inputs a metric cannot be computed on; the message says which input and what to do."""
 
+    user_error = True        # the CLI prints the message and exits 2 (pipeline.errors)
+
 
 @dataclass(frozen=True)
 class MetricInfo:

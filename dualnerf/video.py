@@ -10,6 +10,8 @@ import numpy as np
 class VideoError(ValueError):
     """Frames that cannot be written as a video; the message names the frame and what to do."""
 
+    user_error = True        # the CLI prints the message and exits 2 (pipeline.errors)
+
 
 def write_mp4(frames: Iterable[np.ndarray], path: Path, fps: float = 24.0) -> Path:
     """Write RGB uint8 frames (all (H, W, 3), same size) to `path` as mp4; returns the path.

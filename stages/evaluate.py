@@ -31,6 +31,8 @@ ENCODE_BATCH = 16
 class EvaluateError(ValueError):
     """An evaluate input or parameter that cannot be used; the message says what to change."""
 
+    user_error = True        # the CLI prints the message and exits 2 (pipeline.errors)
+
 
 @dataclass(frozen=True)
 class EvaluateParams:

@@ -32,6 +32,8 @@ SIMULATED_ENCODERS = {"proxy"}
 class ReportError(ValueError):
     """A report input that cannot be used; the message names the folder/file and what to do."""
 
+    user_error = True        # the CLI prints the message and exits 2 (pipeline.errors)
+
 
 @dataclass(frozen=True)
 class ReportRow:
