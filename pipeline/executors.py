@@ -9,6 +9,7 @@ All of them read and write the shared cache folder; only Jobs (keys, params, pat
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 from abc import ABC, abstractmethod
@@ -140,7 +141,7 @@ class RayExecutor(Executor):
     def submit(self, job: Job, resources: Resources):
         # A stage asking for more CPUs than the cluster has would never be scheduled: clamp.
         cpus = max(1, min(resources.cpus, self.cluster_cpus))
-        job = Job(**{**job.__dict__, "threads": cpus})
+        job = dataclasses.replace(job, threads=cpus)
         ref = self._remote.options(num_cpus=cpus, num_gpus=resources.gpus,
                                    max_retries=self.max_retries).remote(job)
         self._refs[ref] = job

@@ -43,6 +43,8 @@ class RunResult:
 
 def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Store, executor: Executor,
               run_dir: Path, quiet: bool = False) -> RunResult:
+    """Run `steps` (and everything upstream of them) and return where each result was published.
+    Raises a UserError before anything runs if a step is invalid. Shuts the executor down at the end."""
     keyed = compute_keys(steps, registry=registry, store=store)
     record = RunRecord(run_dir, store.root)
     by_key: dict[str, list[KeyedStep]] = {}
@@ -77,6 +79,7 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
     state: dict[str, str] = {key: "pending" for key in jobs}
     outcomes: dict[str, Outcome] = {}
     in_flight: dict[object, str] = {}
+    interrupted = False
     try:
         while True:
             changed = False
@@ -117,13 +120,16 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
                                   duration_s=round(outcome.duration_s, 3))
             record.save()
     except KeyboardInterrupt:
+        interrupted = True
         executor.shutdown(interrupted=True)
         for key in in_flight.values():
             record.update_key(key, status="interrupted", error="interrupted (Ctrl-C); rerun to resume")
         record.data.update(status="interrupted", finished=time.time())
         record.save()
         raise
-    executor.shutdown()
+    finally:
+        if not interrupted:
+            executor.shutdown()
 
     result = RunResult(run_file=record.path)
     for step, k in keyed.items():

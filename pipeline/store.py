@@ -242,7 +242,7 @@ class Store:
     def gc(self, roots: set[str], *, stale_after_s: float = 7 * 86400, dry_run: bool = False) -> GcReport:
         """Remove published entries not reachable from `roots` + pins; tmp folders and scratch
         folders with no live lease that are older than `stale_after_s` (scratch of published keys
-        always); the quarantine."""
+        always); leases of dead holders; the quarantine."""
         report = GcReport()
         keep = self.closure(set(roots) | self.pinned())
         now = time.time()
@@ -269,6 +269,11 @@ class Store:
                 published_scratch = parent == self.scratch and self.has(key)
                 if published_scratch or now - path.stat().st_mtime > stale_after_s or parent == self.tmp:
                     remove(path, report.removed_other, f"{parent.name}/{path.name}")
+        if self.leases.is_dir():
+            for path in self.leases.glob("*.lease"):
+                holder = self.lease_holder(path.name.removesuffix(".lease"))
+                if holder is not None and holder.is_stale():
+                    remove(path, report.removed_other, f"leases/{path.name}")
         if self.quarantine_dir.is_dir():
             for path in self.quarantine_dir.iterdir():
                 remove(path, report.removed_other, f"quarantine/{path.name}")
