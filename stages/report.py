@@ -110,6 +110,11 @@ def aggregate(rows: list[ReportRow], docs: list[dict]) -> tuple[list[str], list[
     """Group rows by variant (Original first, then grid order), mean ± sample std over seeds, and mark
     the best mean per column in the direction the metric improves."""
     columns = _column_names(docs)
+    for column in columns:
+        tags = _encoder_tags(docs, column)
+        if METRICS[column].uses_encoder and "," in tags:
+            raise ReportError(f"the results mix encoders for {METRICS[column].symbol} ({tags}); numbers from "
+                              f"different encoders cannot share a column. Evaluate every row with one encoder.")
     groups: dict[tuple, list[int]] = {}
     for i, row in enumerate(rows):
         groups.setdefault(row.variant_key, []).append(i)

@@ -26,6 +26,7 @@ def _png(path: Path, colour) -> None:
 
 
 def make_evaluate(folder: Path, values: dict, colour, *, encoder="proxy", editor="synthetic", gt=True):
+    """A finished evaluate result folder as stages/evaluate.py writes it (metrics.json, views/, path.mp4)."""
     folder.mkdir(parents=True)
     doc = {"format": M.METRICS_FORMAT, "version": M.METRICS_VERSION,
            "encoder": {"kind": encoder}, "editor": None if editor is None else {"kind": editor},
@@ -151,3 +152,12 @@ def test_missing_metrics_is_a_clear_error(tmp_path):
         R.build_report([row], tmp_path / "r", title_info={})
     with pytest.raises(R.ReportError, match="nothing to report"):
         R.build_report([], tmp_path / "r", title_info={})
+
+
+def test_mixed_encoders_are_refused(tmp_path):
+    values = {"clip_text_image_direction": 0.1}
+    rows = [R.ReportRow("a", True, True, True, 0, make_evaluate(tmp_path / "a", values, (1, 2, 3))),
+            R.ReportRow("b", False, False, False, 0,
+                        make_evaluate(tmp_path / "b", values, (1, 2, 3), encoder="clip:ViT-B/32@abc"))]
+    with pytest.raises(R.ReportError, match="mix encoders"):
+        R.build_report(rows, tmp_path / "r", title_info={})
