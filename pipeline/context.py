@@ -13,9 +13,10 @@ import shutil
 import sys
 import time
 import uuid
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from pipeline.hashing import write_json_atomic
 
@@ -85,7 +86,7 @@ class StepContext:
         self.records.update(entries)
 
     @contextmanager
-    def progress(self, total: int, desc: str, initial: int = 0) -> Iterator["ProgressReporter"]:
+    def progress(self, total: int, desc: str, initial: int = 0) -> Iterator[ProgressReporter]:
         reporter = ProgressReporter(total, desc, initial, label=self.label, quiet=self.quiet, log=self.log,
                                     progress_path=self.scratch_dir / PROGRESS_FILE)
         try:

@@ -36,7 +36,7 @@ class External:
 class Step:
     stage: str
     params: Mapping[str, Any] = field(default_factory=dict)
-    inputs: Mapping[str, "Step | External"] = field(default_factory=dict)
+    inputs: Mapping[str, Step | External] = field(default_factory=dict)
     label: str = ""
 
     def __post_init__(self):

@@ -57,10 +57,11 @@ class Outcome:
 def code_commit() -> str | None:
     """The git commit of the code (None outside a checkout); recorded, not keyed."""
     try:
-        result = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True,
+        here = Path(__file__).parent
+        result = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, check=False, capture_output=True,
                                 text=True, timeout=5)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                               cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here, check=False,
+                               capture_output=True, text=True, timeout=5)
     except (OSError, subprocess.SubprocessError):
         return None
     if result.returncode != 0:

@@ -10,6 +10,7 @@ All of them read and write the shared cache folder; only Jobs (keys, params, pat
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import signal
 from abc import ABC, abstractmethod
@@ -152,7 +153,7 @@ class RayExecutor(Executor):
         out = []
         for ref in ready:
             job = self._refs.pop(ref)
-            outcome = _outcome_of(lambda: self._ray.get(ref))
+            outcome = _outcome_of(functools.partial(self._ray.get, ref))
             if outcome.key == "?":
                 outcome = Outcome(job.key, "failed", error=outcome.error)
             out.append((ref, outcome))

@@ -23,7 +23,7 @@ from pipeline.canonical import canonical_value, sha256_of
 FORMAT_VERSION = 1
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def package_version(name: str) -> str:
     try:
         return importlib.metadata.version(name)

@@ -83,7 +83,7 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
     try:
         while True:
             changed = False
-            for key in jobs:
+            for key, job in jobs.items():
                 if len(in_flight) >= executor.slots:
                     break
                 if state[key] != "pending":
@@ -101,7 +101,7 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
                         continue
                     state[key] = "running"
                     record.update_key(key, status="running", started=time.time())
-                    handle = executor.submit(jobs[key], by_key[key][0].stage_cls.resources)
+                    handle = executor.submit(job, by_key[key][0].stage_cls.resources)
                     in_flight[handle] = key
             if changed:
                 record.save()

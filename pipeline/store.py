@@ -21,9 +21,10 @@ import os
 import shutil
 import time
 import uuid
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from pipeline.errors import UserError
 from pipeline.hashing import ContentHasher, sha256_file, write_json_atomic
@@ -124,8 +125,8 @@ class Store:
         if manifest is None:
             return [f"{folder / MANIFEST}: missing or not valid JSON"]
         if manifest.get("key") != key or manifest.get("format") != FORMAT_VERSION:
-            return [f"{folder / MANIFEST}: describes key {manifest.get('key')!r}, format "
-                    f"{manifest.get('format')!r}"]
+            what = f"key {manifest.get('key')!r}, format {manifest.get('format')!r}"
+            return [f"{folder / MANIFEST}: describes {what}"]
         found = []
         expected = manifest.get("files", {})
         for rel, meta in expected.items():

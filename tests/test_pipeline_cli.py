@@ -10,13 +10,13 @@ from pathlib import Path
 
 import pytest
 
-import stages.cli as cli
 from pipeline.dag import Step, compute_keys
 from pipeline.errors import UserError
 from pipeline.executors import SerialExecutor
 from pipeline.runner import run_steps
 from pipeline.status import workflow_status
 from pipeline.store import Store
+from stages import cli
 from stages.commands.status import print_status
 from tests.pipeline_stages import REGISTRY
 
@@ -28,7 +28,7 @@ def test_help_lists_commands_without_heavy_imports():
     probe = ("import sys, stages.cli as c\n"
              "text = c.build_parser().format_help()\n"
              f"print(text); print('HEAVY', sorted(m for m in {HEAVY!r} if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=ROOT,
+    out = subprocess.run([sys.executable, "-c", probe], check=False, capture_output=True, text=True, cwd=ROOT,
                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert out.returncode == 0, out.stderr
     assert "cache" in out.stdout and "status" in out.stdout
@@ -77,7 +77,7 @@ def test_only_the_missing_command_module_itself_is_skipped(monkeypatch):
 
 def test_cli_user_error_has_no_traceback_and_cache_env(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT), DUALNERF_CACHE=str(tmp_path / "envcache"))
-    out = subprocess.run([sys.executable, "-m", "stages.cli", "cache", "pin", "abc"], capture_output=True,
+    out = subprocess.run([sys.executable, "-m", "stages.cli", "cache", "pin", "abc"], check=False, capture_output=True,
                          text=True, env=env, cwd=tmp_path)
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "abc" in out.stderr and str(tmp_path / "envcache") in out.stderr

@@ -137,16 +137,16 @@ def test_gc_keeps_reachable_and_pinned_and_verify_reports_damage(tmp_path):
     store.pin(r2.results[pinned].name)                       # ... but one result is pinned
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     cli = [sys.executable, "-m", "stages.cli", "--cache", str(store.root), "--runs", str(runs)]
-    out = subprocess.run(cli + ["cache", "gc"], capture_output=True, text=True, env=env, cwd=tmp_path)
+    out = subprocess.run(cli + ["cache", "gc"], check=False, capture_output=True, text=True, env=env, cwd=tmp_path)
     assert out.returncode == 0, out.stderr
     remaining = {k for k, _ in store.entries()}
     assert remaining == {r1.results[kept].name, r1.results[kept_up].name, r2.results[pinned].name,
                          r2.results[pinned_up].name}             # pinned result keeps its upstream too
     assert r2.results[dropped].name[:12] in out.stdout
-    ls = subprocess.run(cli + ["cache", "ls"], capture_output=True, text=True, env=env)
+    ls = subprocess.run(cli + ["cache", "ls"], check=False, capture_output=True, text=True, env=env)
     assert ls.returncode == 0 and "4 entries" in ls.stdout and "n=4" in ls.stdout
     (r1.results[kept] / "total.txt").write_text("3.5\n")        # same size, other content
-    verify = subprocess.run(cli + ["cache", "verify"], capture_output=True, text=True, env=env)
+    verify = subprocess.run(cli + ["cache", "verify"], check=False, capture_output=True, text=True, env=env)
     assert verify.returncode == 1
     assert f"DAMAGED {r1.results[kept].name[:12]}" in verify.stdout and "total.txt" in verify.stdout
     assert "3 intact, 1 damaged" in verify.stdout
@@ -182,10 +182,9 @@ def test_checkpoints_keep_newest_two_and_ignore_partial_writes(tmp_path):
     for step in (1, 2, 3):
         with ctx.checkpoint(step) as folder:
             (folder / "x").write_text(str(step))
-    with pytest.raises(RuntimeError):
-        with ctx.checkpoint(4) as folder:
-            (folder / "x").write_text("half")
-            raise RuntimeError("killed while writing")
+    with pytest.raises(RuntimeError), ctx.checkpoint(4) as folder:
+        (folder / "x").write_text("half")
+        raise RuntimeError("killed while writing")
     step, folder = ctx.latest_checkpoint()
     assert step == 3 and (folder / "x").read_text() == "3"
     assert sorted(p.name for p in (tmp_path / "s" / "checkpoints").iterdir()) == ["000000000002", "000000000003"]
