@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import describe, is_user_error
+from pipeline.errors import UserError, describe, is_user_error
 from pipeline.registry import load_ref
 from pipeline.stage import build_params
 from pipeline.store import Store
@@ -109,6 +109,27 @@ def _wait_or_acquire(store: Store, job: Job, log: logging.Logger):
     return lease, None
 
 
+class InputChangedError(UserError):
+    pass
+
+
+def _check_inputs_unchanged(store: Store, job: Job) -> None:
+    """Re-hash the user's files after the stage ran (cheap: memoised by size and mtime). A mismatch
+    means the stage wrote into a user folder, or the user edited it mid-run: either way the result
+    would be filed under a key that does not describe it, so it is not published."""
+    expected = job.key_inputs.get("external", {})
+    try:
+        for name, digest in expected.items():
+            if store.hasher.hash_path(Path(job.inputs[name]), what=f"input '{name}'") != digest:
+                raise InputChangedError(
+                    f"input '{name}' ({job.inputs[name]}) changed while step '{job.label}' ran: either the "
+                    f"stage modified the user's files (a bug: stages must write only to their output and "
+                    f"scratch folders) or the files were edited during the run. Nothing was published; "
+                    f"rerun once the input is final.")
+    finally:
+        store.hasher.save()
+
+
 def execute_job(job: Job) -> Outcome:
     """Produce the published result of `job.key`. Stage exceptions become a failed Outcome (traceback
     in the log file); KeyboardInterrupt propagates after cleanup (lease released, checkpoints kept)."""
@@ -138,6 +159,7 @@ def execute_job(job: Job) -> Outcome:
         if resumed is not None:
             log.info("resuming from checkpoint %d", resumed[0])
         stage_cls().run(ctx)
+        _check_inputs_unchanged(store, job)
         finished = time.time()
         manifest = {
             "stage": stage_cls.name, "label": job.label, "key_inputs": job.key_inputs,

@@ -23,6 +23,7 @@ REGISTRY = {
     "add": "tests.pipeline_stages:AddStage",
     "digest": "tests.pipeline_stages:DigestStage",
     "fail": "tests.pipeline_stages:FailStage",
+    "vandal": "tests.pipeline_stages:VandalStage",
 }
 
 
@@ -145,6 +146,17 @@ class FailStage(Stage):
         if ctx.params.internal:
             raise RuntimeError(ctx.params.message)
         raise BadInputError(ctx.params.message)
+
+
+class VandalStage(DigestStage):
+    """A buggy stage that appends to the user's input file (the engine must refuse its result)."""
+
+    name = "vandal"
+
+    def run(self, ctx) -> None:
+        super().run(ctx)
+        with open(ctx.inputs["source"], "ab") as f:
+            f.write(b"!")
 
 
 def build_steps(spec_steps: list[dict]):

@@ -101,6 +101,17 @@ def test_user_input_folder_is_not_modified(tmp_path):
     assert {p.name: p.stat().st_mtime_ns for p in source.iterdir()} == mtimes
 
 
+def test_stage_modifying_its_input_is_refused(tmp_path):
+    source = tmp_path / "user.txt"
+    source.write_text("original")
+    step = Step("vandal", {}, {"source": External(source)}, label="vandal")
+    store = Store(tmp_path / "cache")
+    result = run([step], store, tmp_path / "runs" / "r")
+    assert result.status[step] == "failed" and result.failed[0].user_error
+    assert "input 'source'" in result.failed[0].error and "changed while step 'vandal' ran" in result.failed[0].error
+    assert not list(store.entries())
+
+
 def test_failure_skips_dependants_but_not_independent_steps(tmp_path):
     store = Store(tmp_path / "cache")
     base = Step("count", {"n": 2}, label="base")
