@@ -37,6 +37,7 @@ class EvaluateError(ValueError):
 @dataclass(frozen=True)
 class EvaluateParams:
     n_frames: int = 60
+    path_scale: float = 1.0             # camera-path frames at this fraction of the dataset resolution
     encoder: str = "proxy"              # "proxy" (weight-free stand-in, NOT CLIP) or "clip"
     encoder_model: str = ""             # CLIP model folder (dualnerf models export-clip) for encoder "clip"
     source_caption: str = ""            # default: the edit's captions from the scene's scene.toml
@@ -70,6 +71,8 @@ class EvaluateStage(Stage):
         p = ctx.params
         if p.n_frames < 2:
             raise EvaluateError(f"evaluate: n_frames must be at least 2 (adjacent-frame metrics), got {p.n_frames}.")
+        if not 0.0 < p.path_scale <= 1.0:
+            raise EvaluateError(f"evaluate: path_scale must be in (0, 1], got {p.path_scale}.")
         if p.device.startswith("cuda") and not torch.cuda.is_available():
             raise EvaluateError(f"evaluate: device '{p.device}' was requested but torch sees no CUDA device; "
                                 f"use device='cpu'.")
@@ -90,9 +93,13 @@ class EvaluateStage(Stage):
         key_frames = [int(train[i]) for i in path.key_indices]
         ref = int(train[0])
         near, far = float(dataset.near[train].min()), float(dataset.far[train].max())
-        width, height = dataset.width, dataset.height
+        # Path frames may be rendered smaller (path_scale): pinhole intrinsics scale with the image.
+        path_width = max(1, round(dataset.width * p.path_scale))
+        path_height = max(1, round(dataset.height * p.path_scale))
+        path_intrinsics = dataset.intrinsics[ref] * np.array([path_width / dataset.width,
+                                                              path_height / dataset.height] * 2)
 
-        def render(model, model_blend, c2w, intrinsics):
+        def render(model, model_blend, c2w, intrinsics, width, height):
             from dualnerf.rendering import render_view
 
             image = render_view(model, c2w, intrinsics, width, height, near, far, blend=model_blend,
@@ -111,10 +118,12 @@ class EvaluateStage(Stage):
         with ctx.progress(total, "render path and views") as bar:
             for kind, model, model_blend in models:
                 for c2w in path.c2w:
-                    frames[kind].append(render(model, model_blend, c2w, dataset.intrinsics[ref]))
+                    frames[kind].append(render(model, model_blend, c2w, path_intrinsics, path_width,
+                                               path_height))
                     bar.update()
                 for i in view_ids:
-                    views[kind].append(render(model, model_blend, dataset.c2w[i], dataset.intrinsics[i]))
+                    views[kind].append(render(model, model_blend, dataset.c2w[i], dataset.intrinsics[i],
+                                              dataset.width, dataset.height))
                     bar.update()
         if edited is None:                    # the unedited scene: edited renders are the original ones
             frames["edited"], views["edited"] = frames["original"], views["original"]
@@ -130,7 +139,7 @@ class EvaluateStage(Stage):
         write_mp4(frames["edited"], out / "path.mp4", fps=PATH_FPS)
         (out / "camera_path.json").write_text(json.dumps(
             {**path.describe(), "key_frames": key_frames, "key_names": [dataset.names[i] for i in key_frames],
-             "intrinsics": dataset.intrinsics[ref].tolist(), "width": width, "height": height,
+             "intrinsics": path_intrinsics.tolist(), "width": path_width, "height": path_height,
              "near": near, "far": far, "fps": PATH_FPS, "c2w": path.c2w.tolist()}, indent=1))
 
         values: dict[str, float] = {}

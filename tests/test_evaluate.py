@@ -47,7 +47,8 @@ def run_evaluate(tmp_path, dataset, models, edited: bool, **params):
 
 @pytest.mark.slow
 def test_original_scene_invariants(tmp_path, tiny_dataset, models):
-    ctx = run_evaluate(tmp_path, tiny_dataset, models, edited=False, n_frames=5, edit_id="snow")
+    ctx = run_evaluate(tmp_path, tiny_dataset, models, edited=False, n_frames=5, edit_id="snow",
+                       path_scale=0.5)
     out = ctx.out_dir
     doc = json.loads((out / "metrics.json").read_text())
     values = {k: M.parse_json_value(v["value"]) for k, v in doc["metrics"].items()}
@@ -72,6 +73,19 @@ def test_original_scene_invariants(tmp_path, tiny_dataset, models):
     assert (out / "path.mp4").stat().st_size > 0
     path = json.loads((out / "camera_path.json").read_text())
     assert len(path["c2w"]) == 5 and not path["closed"]          # the tiny scene is an arc capture
+    # path_scale 0.5: frames at half the dataset size, focal lengths and centre halved with them.
+    import cv2
+
+    from dualnerf.dataset import load_dataset
+
+    dataset = load_dataset(tiny_dataset)
+    frame = cv2.imread(str(out / "frames" / "edited" / "0000.png"))
+    assert frame.shape[:2] == (round(dataset.height / 2), round(dataset.width / 2))
+    train0 = dataset.indices("train")[0]
+    assert path["intrinsics"] == pytest.approx((dataset.intrinsics[train0] / 2).tolist())
+    # Held-out views stay at full resolution (they are compared with the ground truth).
+    view = cv2.imread(str(out / "views" / "edited" / names[0]))
+    assert view.shape[:2] == (dataset.height, dataset.width)
     assert ctx.records["encoder_tag"] == "proxy"
 
 
@@ -116,3 +130,5 @@ def test_edited_scene_metrics_match_independent_recomputation(tmp_path, tiny_dat
 def test_bad_params_are_explained(tmp_path, models):
     with pytest.raises(EvaluateError, match="n_frames"):
         run_evaluate(tmp_path, tmp_path, models, edited=False, n_frames=1)
+    with pytest.raises(EvaluateError, match="path_scale"):
+        run_evaluate(tmp_path, tmp_path, models, edited=False, path_scale=0.0)
