@@ -33,7 +33,7 @@ class CameraPath:
 
     def describe(self) -> dict:
         """JSON-ready facts for the manifest and metrics.json."""
-        return {"n_frames": int(len(self.c2w)), "key_indices": [int(i) for i in self.key_indices],
+        return {"n_frames": len(self.c2w), "key_indices": [int(i) for i in self.key_indices],
                 "closed": self.closed, "positions": "centripetal Catmull-Rom, constant speed",
                 "rotations": "quaternion squad"}
 

@@ -63,8 +63,16 @@ class EvaluateStage(Stage):
 
         from dualnerf.camera_path import smooth_camera_path
         from dualnerf.dataset import load_dataset
-        from dualnerf.metrics import (METRICS, METRICS_FORMAT, METRICS_VERSION, clip_metrics,
-                                      ground_truth_metrics, json_value, mean_over_views, ssim)
+        from dualnerf.metrics import (
+            METRICS,
+            METRICS_FORMAT,
+            METRICS_VERSION,
+            clip_metrics,
+            ground_truth_metrics,
+            json_value,
+            mean_over_views,
+            ssim,
+        )
         from dualnerf.model import load_model, saved_blend
         from dualnerf.video import write_mp4
 

@@ -349,14 +349,14 @@ def _title_rows(docs: list[dict], title_info: dict) -> list[tuple[str, str]]:
     return rows + [("editor", editor_text), ("encoder", encoder_text)]
 
 
-def write_html(out_dir: Path, *, title_rows, table_doc, columns, table, docs, grid_labels, curves,
+def write_html(out_dir: Path, *, title_rows, columns, table, docs, grid_labels, curves,
                videos) -> Path:
     esc = html.escape
     parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'><title>DualNeRF report</title>",
-             "<style>body{font-family:sans-serif;margin:2em;max-width:1200px}table{border-collapse:collapse}"
+             ("<style>body{font-family:sans-serif;margin:2em;max-width:1200px}table{border-collapse:collapse}"
              "td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}th{background:#eee}"
              ".best{font-weight:bold;background:#e6f4e6}.warn{color:#a00;font-weight:bold}"
-             "img{max-width:100%}</style></head><body>", "<h1>DualNeRF experiment report</h1>",
+             "img{max-width:100%}</style></head><body>"), "<h1>DualNeRF experiment report</h1>",
              "<table class='title'>"]
     for key, value in title_rows:
         cls = " class='warn'" if ("EMULATOR" in value or "NOT CLIP" in value) else ""
@@ -423,5 +423,5 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict) -> P
         "videos": [rel for _, rel in videos],
         "rows": [{"label": r.label, "seed": r.seed, "evaluate_dir": str(r.evaluate_dir),
                   "edit_dir": None if r.edit_dir is None else str(r.edit_dir)} for r in rows]}, indent=1))
-    return write_html(out_dir, title_rows=title_rows, table_doc=table_doc, columns=columns, table=table,
+    return write_html(out_dir, title_rows=title_rows, columns=columns, table=table,
                       docs=docs, grid_labels=grid_labels, curves=curves, videos=videos)

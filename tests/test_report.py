@@ -76,7 +76,7 @@ def grid(tmp_path):
 
 
 def test_report_contains_every_row_and_file(grid, tmp_path):
-    rows, table = grid
+    rows, _table = grid
     out = tmp_path / "report"
     # Hand the rows over shuffled: the Original row must still come first.
     index = R.build_report([rows[3], rows[0], rows[1], rows[4], rows[2]], out,

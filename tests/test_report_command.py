@@ -101,6 +101,6 @@ def test_rows_and_report_from_the_store(setup, tmp_path):
 
 
 def test_missing_results_are_named(setup):
-    workflow, store, keys, _ = setup
+    workflow, store, _keys, _ = setup
     with pytest.raises(ReportError, match=r"evaluate\[baseline\], evaluate\[DF\+SA\+CCI\]"):
         workflow_rows(workflow, store)
