@@ -80,13 +80,23 @@ class ProcessPoolExecutor(Executor):
 
         self.slots = max(1, jobs)
         self.threads = max(1, cpu_count() // self.slots)
-        self._pool = concurrent.futures.ProcessPoolExecutor(
+        self._new_pool = lambda: concurrent.futures.ProcessPoolExecutor(
             max_workers=self.slots, mp_context=multiprocessing.get_context("spawn"),
             initializer=_worker_init, initargs=(self.threads,))
+        self._pool = self._new_pool()
         self._futures: set = set()
 
     def submit(self, job: Job, resources: Resources):
-        future = self._pool.submit(execute_job, job)
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            future = self._pool.submit(execute_job, job)
+        except BrokenProcessPool:
+            # A worker was killed (SIGKILL, out of memory): the steps it and its siblings were running
+            # are reported failed; later steps get a fresh pool.
+            self._pool.shutdown(wait=False)
+            self._pool = self._new_pool()
+            future = self._pool.submit(execute_job, job)
         self._futures.add(future)
         return future
 
@@ -115,7 +125,9 @@ def _outcome_of(get_result) -> Outcome:
     except KeyboardInterrupt:
         raise
     except BaseException as exc:  # noqa: BLE001
-        return Outcome(key="?", status="failed", error=f"worker died: {type(exc).__name__}: {exc}")
+        return Outcome(key="?", status="failed",
+                       error=f"worker process died while this step (or one running beside it) ran: "
+                             f"{type(exc).__name__}: {exc}. Rerun to retry; checkpoints are kept.")
 
 
 class RayExecutor(Executor):

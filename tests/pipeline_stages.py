@@ -24,6 +24,7 @@ REGISTRY = {
     "digest": "tests.pipeline_stages:DigestStage",
     "fail": "tests.pipeline_stages:FailStage",
     "vandal": "tests.pipeline_stages:VandalStage",
+    "suicide": "tests.pipeline_stages:SuicideStage",
 }
 
 
@@ -157,6 +158,15 @@ class VandalStage(DigestStage):
         super().run(ctx)
         with open(ctx.inputs["source"], "ab") as f:
             f.write(b"!")
+
+
+class SuicideStage(FailStage):
+    """Kills its own process with SIGKILL, like the out-of-memory killer would."""
+
+    name = "suicide"
+
+    def run(self, ctx) -> None:
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def build_steps(spec_steps: list[dict]):

@@ -83,6 +83,15 @@ def test_cli_user_error_has_no_traceback_and_cache_env(tmp_path):
     assert "abc" in out.stderr and str(tmp_path / "envcache") in out.stderr
 
 
+def test_bad_workflow_toml_names_file_and_line(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[workflow]\nname = "x"\nseeds = [0, 1]]\nedit = "snow"\n')
+    out = subprocess.run([sys.executable, "-m", "stages.cli", "--cache", str(tmp_path / "c"), "status", str(bad)],
+                         check=False, capture_output=True, text=True, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert str(bad) in out.stderr and "line 3" in out.stderr
+
+
 def test_status_reports_each_state(tmp_path, capsys):
     store, runs = Store(tmp_path / "cache"), tmp_path / "runs"
     done = Step("count", {"n": 2}, label="done")

@@ -64,6 +64,17 @@ def test_process_pool_matches_serial(tmp_path, serial):
 
 
 @pytest.mark.slow
+def test_process_pool_survives_a_killed_worker(tmp_path):
+    killer = Step("suicide", {}, label="killer")
+    after = Step("count", {"n": 3}, label="after")
+    result = run_steps([killer, after], registry=REGISTRY, store=Store(tmp_path / "cache"),
+                       executor=ProcessPoolExecutor(jobs=1), run_dir=tmp_path / "runs" / "r", quiet=True)
+    assert result.status == {killer: "failed", after: "done"}
+    assert "worker process died" in result.failed[0].error
+    assert (result.results[after] / "total.txt").read_text() == "3\n"
+
+
+@pytest.mark.slow
 def test_ray_matches_serial(tmp_path, serial):
     ray = pytest.importorskip("ray")
     from pipeline.executors import RayExecutor
