@@ -63,6 +63,7 @@ class EvaluateStage(Stage):
 
         from dualnerf.camera_path import smooth_camera_path
         from dualnerf.dataset import load_dataset
+        from dualnerf.dual_field import DualField
         from dualnerf.metrics import (
             METRICS,
             METRICS_FORMAT,
@@ -91,6 +92,10 @@ class EvaluateStage(Stage):
         static = load_model(Path(ctx.inputs["fit"]) / "model", p.device).eval()
         edited = None if edit_dir is None else load_model(Path(edit_dir) / "model", p.device).eval()
         blend = None if edited is None else saved_blend(edited)
+        if edited is not None and blend is None and isinstance(edited, DualField):
+            # Rendering a dual field without blend weights shows f_S alone: the edit would vanish.
+            raise EvaluateError(f"{Path(edit_dir) / 'model' / 'model.json'} is a dual field without "
+                                f"render_blend; rerun the edit stage (it saves its final blend weights).")
 
         edit_spec = _edit_captions(data_dir, p)
         train = dataset.indices("train")

@@ -127,6 +127,18 @@ def test_edited_scene_metrics_match_independent_recomputation(tmp_path, tiny_dat
     assert doc["target_caption"] == "a campsite with a tent covered in fresh snow"
 
 
+def test_dual_field_without_blend_is_refused(tmp_path, tiny_dataset, models):
+    import shutil
+
+    broken = tmp_path / "models"
+    shutil.copytree(models, broken)
+    meta = json.loads((broken / "edit" / "model" / "model.json").read_text())
+    meta["render_blend"] = None
+    (broken / "edit" / "model" / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(EvaluateError, match="without render_blend"):
+        run_evaluate(tmp_path, tiny_dataset, broken, edited=True, n_frames=2)
+
+
 def test_bad_params_are_explained(tmp_path, models):
     with pytest.raises(EvaluateError, match="n_frames"):
         run_evaluate(tmp_path, tmp_path, models, edited=False, n_frames=1)
