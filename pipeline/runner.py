@@ -75,6 +75,7 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
             record.add_step(label=k.label, stage=k.stage_cls.name, key=key, inputs=described,
                             params=params_dict(k.params), log=log_path)
     record.save()
+    store.register_run(record.path)
 
     state: dict[str, str] = {key: "pending" for key in jobs}
     outcomes: dict[str, Outcome] = {}

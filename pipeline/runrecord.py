@@ -50,17 +50,19 @@ class RunRecord:
         write_json_atomic(self.path, self.data)
 
 
-def read_runs(runs_dir: Path) -> list[dict[str, Any]]:
-    """Every readable run record under `runs_dir`, oldest first."""
+def read_runs(runs_dir: Path, extra_files: list[Path] = ()) -> list[dict[str, Any]]:
+    """Every readable run record under `runs_dir` (plus `extra_files`), oldest first."""
+    paths = set(Path(runs_dir).glob(f"*/{RUN_FILE}")) if Path(runs_dir).is_dir() else set()
+    paths |= {Path(p) for p in extra_files}
     records = []
-    if Path(runs_dir).is_dir():
-        for path in Path(runs_dir).glob(f"*/{RUN_FILE}"):
-            try:
-                records.append(json.loads(path.read_text(encoding="utf-8")))
-            except (OSError, ValueError):
-                continue
+    for path in paths:
+        try:
+            records.append(json.loads(path.read_text(encoding="utf-8")))
+        except (OSError, ValueError):
+            continue
     return sorted(records, key=lambda r: r.get("started") or 0)
 
 
-def referenced_keys(runs_dir: Path) -> set[str]:
-    return {step["key"] for record in read_runs(runs_dir) for step in record.get("steps", [])}
+def referenced_keys(runs_dir: Path, extra_files: list[Path] = ()) -> set[str]:
+    """gc roots: every key named by a run record under `runs_dir` or in `extra_files`."""
+    return {step["key"] for record in read_runs(runs_dir, extra_files) for step in record.get("steps", [])}

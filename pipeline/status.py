@@ -46,7 +46,7 @@ def workflow_status(steps: Sequence[Step], *, registry: Mapping[str, str], store
                     runs_dir: Path) -> list[StepStatus]:
     keyed = compute_keys(steps, registry=registry, store=store)
     latest: dict[str, dict] = {}
-    for record in read_runs(runs_dir):            # oldest first: later runs overwrite
+    for record in read_runs(runs_dir, store.registered_run_files()):   # oldest first: later runs win
         for entry in record.get("steps", []):
             latest[entry["key"]] = entry
     out = []

@@ -8,6 +8,8 @@ Layout under the cache root:
     leases/<k>.lease         who is computing <k> right now (see pipeline.lease)
     quarantine/<k>.<time>/   results whose files did not match their manifest; never used again
     pins/<k>                 gc roots besides run records
+    runs/<h>.json            {"run_file": path}: every run record that used this store (gc roots,
+                             wherever the run folder lives; dropped once the run file is deleted)
     config.json              {"salt": ...}: store-wide salt entering every key
     hashmemo.json            memo of input-file hashes (pipeline.hashing)
 A result is only ever used after its files were checked against its manifest (sizes, and sha256
@@ -15,6 +17,7 @@ unless a caller asks for the cheap check).
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -208,7 +211,28 @@ class Store:
     def remove_scratch(self, key: str) -> None:
         shutil.rmtree(self.scratch_path(key), ignore_errors=True)
 
-    # ---- pins and garbage collection ------------------------------------------------------------
+    # ---- gc roots: run records and pins --------------------------------------------------------
+    def register_run(self, run_file: Path) -> None:
+        run_file = Path(run_file).absolute()
+        name = hashlib.sha256(str(run_file).encode("utf-8")).hexdigest()[:20]
+        (self.root / "runs").mkdir(parents=True, exist_ok=True)
+        write_json_atomic(self.root / "runs" / f"{name}.json", {"run_file": str(run_file)})
+
+    def registered_run_files(self) -> list[Path]:
+        """Run records that used this store and still exist (registrations of deleted ones are dropped)."""
+        found = []
+        folder = self.root / "runs"
+        for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+            try:
+                run_file = Path(json.loads(path.read_text(encoding="utf-8"))["run_file"])
+            except (OSError, ValueError, KeyError):
+                continue
+            if run_file.exists():
+                found.append(run_file)
+            else:
+                path.unlink(missing_ok=True)
+        return found
+
     def pin(self, key: str) -> None:
         if not self.has(key):
             raise StoreError(f"no published cache entry {key} in {self.root}; `dualnerf cache ls` lists them.")

@@ -5,6 +5,7 @@ import hashlib
 import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -143,6 +144,8 @@ def test_gc_keeps_reachable_and_pinned_and_verify_reports_damage(tmp_path):
     pinned_up = Step("count", {"n": 4}, label="pinned-up")
     pinned = Step("add", {"value": 2.0}, {"left": pinned_up}, label="pinned")
     r1 = run([kept], store, runs / "keep")
+    elsewhere = Step("count", {"n": 7}, label="elsewhere")
+    r0 = run([elsewhere], store, tmp_path / "other-runs" / "x")   # not under --runs: found by registration
     r2 = run([dropped, pinned], store, runs / "gone")
     (runs / "gone" / "run.json").unlink()                   # that run record is deleted
     store.pin(r2.results[pinned].name)                       # ... but one result is pinned
@@ -152,15 +155,23 @@ def test_gc_keeps_reachable_and_pinned_and_verify_reports_damage(tmp_path):
     assert out.returncode == 0, out.stderr
     remaining = {k for k, _ in store.entries()}
     assert remaining == {r1.results[kept].name, r1.results[kept_up].name, r2.results[pinned].name,
-                         r2.results[pinned_up].name}             # pinned result keeps its upstream too
+                         r2.results[pinned_up].name, r0.results[elsewhere].name}  # pin keeps its upstream too
     assert r2.results[dropped].name[:12] in out.stdout
     ls = subprocess.run(cli + ["cache", "ls"], check=False, capture_output=True, text=True, env=env)
-    assert ls.returncode == 0 and "4 entries" in ls.stdout and "n=4" in ls.stdout
+    assert ls.returncode == 0 and "5 entries" in ls.stdout and "n=4" in ls.stdout
     (r1.results[kept] / "total.txt").write_text("3.5\n")        # same size, other content
     verify = subprocess.run(cli + ["cache", "verify"], check=False, capture_output=True, text=True, env=env)
     assert verify.returncode == 1
     assert f"DAMAGED {r1.results[kept].name[:12]}" in verify.stdout and "total.txt" in verify.stdout
-    assert "3 intact, 1 damaged" in verify.stdout
+    assert "4 intact, 1 damaged" in verify.stdout
+    # with no run record and no pin at all, gc refuses to empty the store unless told to
+    shutil.rmtree(runs)
+    shutil.rmtree(tmp_path / "other-runs")
+    store.unpin(r2.results[pinned].name)
+    refused = subprocess.run(cli + ["cache", "gc"], check=False, capture_output=True, text=True, env=env)
+    assert refused.returncode == 2 and "--force" in refused.stderr and len(list(store.entries())) == 5
+    forced = subprocess.run(cli + ["cache", "gc", "--force"], check=False, capture_output=True, text=True, env=env)
+    assert forced.returncode == 0 and not list(store.entries())
 
 
 def test_dry_run_states(tmp_path):

@@ -20,6 +20,8 @@ def register(subparsers) -> None:
     gc.add_argument("--dry-run", action="store_true", help="only list what would be removed")
     gc.add_argument("--stale-days", type=float, default=7.0,
                     help="also remove scratch (checkpoint) folders untouched this long (default 7)")
+    gc.add_argument("--force", action="store_true",
+                    help="allow removing every entry when no run record or pin is found")
     gc.set_defaults(handler=_gc)
     for name, func, text in (("pin", _pin, "keep KEY (and what it was built from) through gc"),
                              ("unpin", _unpin, "remove a pin")):
@@ -103,8 +105,14 @@ def _gc(args: argparse.Namespace) -> int:
     from pipeline.runrecord import referenced_keys
     from stages.cli import open_store
 
+    from pipeline.store import StoreError
+
     store = open_store(args)
-    roots = referenced_keys(args.runs)
+    run_files = store.registered_run_files()
+    roots = referenced_keys(args.runs, run_files)
+    if not roots and not store.pinned() and not args.force and any(True for _ in store.entries()):
+        raise StoreError(f"no run records found (under {args.runs} or registered in {store.root}/runs) and "
+                         f"nothing is pinned, so gc would remove every entry. Check --runs, or pass --force.")
     report = store.gc(roots, stale_after_s=args.stale_days * 86400, dry_run=args.dry_run)
     verb = "would remove" if args.dry_run else "removed"
     for key in report.removed:
@@ -113,7 +121,8 @@ def _gc(args: argparse.Namespace) -> int:
         print(f"{verb} {name}")
     print(f"{verb} {len(report.removed)} entries and {len(report.removed_other)} tmp/scratch/quarantine "
           f"folders ({_human_size(report.freed_bytes)}); kept {report.kept} reachable from "
-          f"{len(roots)} run keys under {args.runs} and {len(store.pinned())} pins")
+          f"{len(roots)} keys in run records ({args.runs} and {len(run_files)} registered) "
+          f"and {len(store.pinned())} pins")
     return 0
 
 
