@@ -103,9 +103,8 @@ def _verify(args: argparse.Namespace) -> int:
 
 def _gc(args: argparse.Namespace) -> int:
     from pipeline.runrecord import referenced_keys
-    from stages.cli import open_store
-
     from pipeline.store import StoreError
+    from stages.cli import open_store
 
     store = open_store(args)
     run_files = store.registered_run_files()
