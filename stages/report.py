@@ -4,6 +4,7 @@
 `views/`, `path.mp4`) and edit results (`curves.json`) and writes, into `out_dir`:
     table.md, table.csv, table.json    one row per variant (mean ± std over seeds), best value marked
     grid.png                           rows: original, ground-truth edit (procedural scenes), variants
+    path_strip.png                     camera-path frames at evenly spaced positions, per variant
     curves/<series>.png                training curves of every edited row, one plot per series
     videos/<row>.mp4                   copies of the camera-path videos
     index.html                         everything above, with relative links only
@@ -25,6 +26,7 @@ import numpy as np
 from dualnerf.metrics import METRICS, METRICS_FORMAT, METRICS_VERSION, json_value, parse_json_value
 
 GRID_VIEWS = 4
+PATH_STRIP_FRAMES = 6
 SIMULATED_EDITORS = {"synthetic"}
 SIMULATED_ENCODERS = {"proxy"}
 
@@ -221,34 +223,22 @@ def _read_rgb(path: Path) -> np.ndarray | None:
     return None if image is None else image[..., ::-1]
 
 
-def write_image_grid(rows: list[ReportRow], docs: list[dict], path: Path) -> list[str] | None:
-    """A grid of fixed views (columns) for the original scene, the ground-truth edit where the scene
-    has one, and the first seed of every edited variant. Returns the row labels, or None without views."""
+def _first_per_variant(rows: list[ReportRow]) -> list[ReportRow]:
+    seen, out = set(), []
+    for row in rows:
+        if not row.is_original and row.variant_key not in seen:
+            seen.add(row.variant_key)
+            out.append(row)
+    return out
+
+
+def _plot_grid(grid: list[tuple[str, list[np.ndarray | None]]], titles: list[str], path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = None
-    for doc in docs:
-        listed = doc.get("views", {}).get("names", [])
-        names = listed if names is None else [n for n in names if n in listed]
-    names = (names or [])[:GRID_VIEWS]
-    if not names:
-        return None
-    source = rows[0].evaluate_dir
-    grid: list[tuple[str, list[np.ndarray | None]]] = [
-        ("Original", [_read_rgb(source / "views" / "original" / n) for n in names])]
-    gt = [_read_rgb(source / "views" / "gt_edit" / n) for n in names]
-    if any(image is not None for image in gt):
-        grid.append(("GT edit", gt))
-    seen = set()
-    for row in rows:
-        if row.is_original or row.variant_key in seen:
-            continue
-        seen.add(row.variant_key)
-        grid.append((row.label, [_read_rgb(row.evaluate_dir / "views" / "edited" / n) for n in names]))
-    fig, axes = plt.subplots(len(grid), len(names), figsize=(2.2 * len(names), 2.0 * len(grid)),
+    fig, axes = plt.subplots(len(grid), len(titles), figsize=(2.2 * len(titles), 2.0 * len(grid)),
                              squeeze=False)
     for r, (label, images) in enumerate(grid):
         for c, image in enumerate(images):
@@ -262,10 +252,47 @@ def write_image_grid(rows: list[ReportRow], docs: list[dict], path: Path) -> lis
             if c == 0:
                 ax.set_ylabel(label, fontsize=9)
             if r == 0:
-                ax.set_title(names[c], fontsize=8)
+                ax.set_title(titles[c], fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def write_image_grid(rows: list[ReportRow], docs: list[dict], path: Path) -> list[str] | None:
+    """A grid of fixed views (columns) for the original scene, the ground-truth edit where the scene
+    has one, and the first seed of every edited variant. Returns the row labels, or None without views."""
+    names = None
+    for doc in docs:
+        listed = doc.get("views", {}).get("names", [])
+        names = listed if names is None else [n for n in names if n in listed]
+    names = (names or [])[:GRID_VIEWS]
+    if not names:
+        return None
+    source = rows[0].evaluate_dir
+    grid: list[tuple[str, list[np.ndarray | None]]] = [
+        ("Original", [_read_rgb(source / "views" / "original" / n) for n in names])]
+    gt = [_read_rgb(source / "views" / "gt_edit" / n) for n in names]
+    if any(image is not None for image in gt):
+        grid.append(("GT edit", gt))
+    for row in _first_per_variant(rows):
+        grid.append((row.label, [_read_rgb(row.evaluate_dir / "views" / "edited" / n) for n in names]))
+    _plot_grid(grid, names, path)
+    return [label for label, _ in grid]
+
+
+def write_path_strip(rows: list[ReportRow], path: Path) -> list[str] | None:
+    """Camera-path frames at evenly spaced positions (columns) for the original scene and the first seed
+    of every variant: the video's content as a still (mp4v does not play in every browser)."""
+    source = rows[0].evaluate_dir / "frames" / "original"
+    count = len(list(source.glob("*.png"))) if source.is_dir() else 0
+    if count == 0:
+        return None
+    picks = sorted({int(i) for i in np.round(np.linspace(0, count - 1, min(PATH_STRIP_FRAMES, count)))})
+    names = [f"{i:04d}.png" for i in picks]
+    grid = [("Original", [_read_rgb(source / n) for n in names])]
+    for row in _first_per_variant(rows):
+        grid.append((row.label, [_read_rgb(row.evaluate_dir / "frames" / "edited" / n) for n in names]))
+    _plot_grid(grid, [f"frame {i}" for i in picks], path)
     return [label for label, _ in grid]
 
 
@@ -349,7 +376,7 @@ def _title_rows(docs: list[dict], title_info: dict) -> list[tuple[str, str]]:
     return rows + [("editor", editor_text), ("encoder", encoder_text)]
 
 
-def write_html(out_dir: Path, *, title_rows, columns, table, docs, grid_labels, curves,
+def write_html(out_dir: Path, *, title_rows, columns, table, docs, grid_labels, strip_labels, curves,
                videos) -> Path:
     esc = html.escape
     parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'><title>DualNeRF report</title>",
@@ -381,6 +408,9 @@ def write_html(out_dir: Path, *, title_rows, columns, table, docs, grid_labels, 
     if grid_labels:
         parts.append(f"<h2>Views</h2><p>Rows: {esc(', '.join(grid_labels))}.</p>"
                      "<img src='grid.png' alt='image grid'>")
+    if strip_labels:
+        parts.append(f"<h2>Camera path</h2><p>Rows: {esc(', '.join(strip_labels))}.</p>"
+                     "<img src='path_strip.png' alt='camera path frames'>")
     if curves:
         parts.append("<h2>Training curves</h2>")
         parts += [f"<img src='{esc(rel)}' alt='{esc(rel)}'>" for rel in curves]
@@ -407,6 +437,7 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict) -> P
     columns, table = aggregate(rows, docs)
     table_doc = write_tables(columns, table, docs, out_dir)
     grid_labels = write_image_grid(rows, docs, out_dir / "grid.png")
+    strip_labels = write_path_strip(rows, out_dir / "path_strip.png")
     curves = write_curves(rows, out_dir)
     videos = []
     for row in rows:
@@ -419,9 +450,10 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict) -> P
             videos.append((name, rel))
     title_rows = _title_rows(docs, title_info)
     (out_dir / "report.json").write_text(json.dumps({
-        "title": dict(title_rows), "table": table_doc, "grid_rows": grid_labels, "curves": curves,
+        "title": dict(title_rows), "table": table_doc, "grid_rows": grid_labels,
+        "path_strip_rows": strip_labels, "curves": curves,
         "videos": [rel for _, rel in videos],
         "rows": [{"label": r.label, "seed": r.seed, "evaluate_dir": str(r.evaluate_dir),
                   "edit_dir": None if r.edit_dir is None else str(r.edit_dir)} for r in rows]}, indent=1))
-    return write_html(out_dir, title_rows=title_rows, columns=columns, table=table,
-                      docs=docs, grid_labels=grid_labels, curves=curves, videos=videos)
+    return write_html(out_dir, title_rows=title_rows, columns=columns, table=table, docs=docs,
+                      grid_labels=grid_labels, strip_labels=strip_labels, curves=curves, videos=videos)

@@ -41,6 +41,9 @@ def make_evaluate(folder: Path, values: dict, colour, *, encoder="proxy", editor
         _png(folder / "views" / "edited" / name, colour)
         if gt:
             _png(folder / "views" / "gt_edit" / name, (240, 240, 250))
+    for n in range(8):
+        _png(folder / "frames" / "original" / f"{n:04d}.png", (90, 140, 60 + 20 * n))
+        _png(folder / "frames" / "edited" / f"{n:04d}.png", colour)
     write_mp4([np.full((16, 16, 3), colour, np.uint8)] * 3, folder / "path.mp4", fps=4)
     return folder
 
@@ -83,7 +86,7 @@ def test_report_contains_every_row_and_file(grid, tmp_path):
                            title_info={"scene": "tiny", "edit": "snow"})
     assert index == out / "index.html"
     text = index.read_text()
-    for name in ("table.md", "table.csv", "table.json", "grid.png", "curves/loss.png",
+    for name in ("table.md", "table.csv", "table.json", "grid.png", "path_strip.png", "curves/loss.png",
                  "curves/blend_weight.png", "report.json"):
         assert (out / name).is_file(), name
     assert len(list((out / "videos").glob("*.mp4"))) == 5
@@ -144,6 +147,7 @@ def test_grid_rows_are_original_gt_and_variants(grid, tmp_path):
     R.build_report(rows, tmp_path / "r", title_info={})
     report = json.loads((tmp_path / "r" / "report.json").read_text())
     assert report["grid_rows"] == ["Original", "GT edit", "baseline", "DF+SA+CCI"]
+    assert report["path_strip_rows"] == ["Original", "baseline", "DF+SA+CCI"]
 
 
 def test_missing_metrics_is_a_clear_error(tmp_path):
