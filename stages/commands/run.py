@@ -1,0 +1,109 @@
+"""`dualnerf run WORKFLOW`: expand the grid, compute every missing step once, then write the report.
+
+Rerunning the same command after an interruption continues: finished steps come from the store,
+interrupted ones resume from their newest in-stage checkpoint.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "run", help="run a workflow grid (resumable; shared steps computed once)",
+        description="Expand a workflow TOML into a DAG of stage steps, compute what the store lacks, and "
+                    "write the report. Rerun the same command to continue after an interruption.")
+    parser.add_argument("workflow", help="workflow TOML file, e.g. workflows/ablation.toml")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a workflow key (scene=, edit=, seeds=) or a stage parameter "
+                             "(fit.iterations=500); repeatable")
+    parser.add_argument("--dry-run", action="store_true",
+                        help="print the DAG with each step's key and state (cached/partial/pending); run nothing")
+    parser.add_argument("--executor", choices=["serial", "process", "ray"], default="process",
+                        help="where steps run (default: a local process pool)")
+    parser.add_argument("--jobs", type=int, default=None,
+                        help="parallel steps for the process pool (default: cores / threads per job)")
+    parser.add_argument("--ray-address", default=None,
+                        help="Ray cluster to join (default: start a local Ray instance)")
+    parser.add_argument("--reports", type=Path, default=None,
+                        help="report folder (default: the workflow's report_dir, e.g. reports/<scene>)")
+    parser.add_argument("--no-report", action="store_true", help="skip the report at the end")
+    parser.set_defaults(handler=_run)
+
+
+def default_jobs(steps) -> int:
+    """As many parallel steps as the CPU holds without oversubscription, given the stages' thread hints."""
+    from pipeline.executors import cpu_count
+    from pipeline.registry import load_stage
+    from stages import STAGES
+
+    threads_per_job = max(load_stage(STAGES, s.stage).resources.cpus for s in steps)
+    return max(1, cpu_count() // max(1, threads_per_job))
+
+
+def _run(args: argparse.Namespace) -> int:
+    from pipeline.dag import dry_run
+    from pipeline.executors import make_executor
+    from pipeline.runner import run_steps
+    from stages import STAGES
+    from stages.cli import open_store
+    from stages.workflow import load_workflow
+
+    workflow = load_workflow(args.workflow, args.overrides)
+    store = open_store(args)
+    _print_banner(workflow)
+    if args.dry_run:
+        rows = dry_run(workflow.steps, registry=STAGES, store=store)
+        width = max(len(label) for label, _, _ in rows)
+        for label, key, state in rows:
+            print(f"  {label.ljust(width)}  {key}  {state}")
+        return 0
+
+    jobs = args.jobs or default_jobs(workflow.steps)
+    executor = make_executor(args.executor, jobs=jobs, address=args.ray_address)
+    run_dir = args.runs / f"{workflow.name}-{workflow.scene_name}" / time.strftime("%Y%m%d-%H%M%S")
+    started = time.perf_counter()
+    result = run_steps(workflow.steps, registry=STAGES, store=store, executor=executor, run_dir=run_dir,
+                       quiet=args.quiet)
+    elapsed = time.perf_counter() - started
+    computed = sum(1 for s in result.status.values() if s == "done")
+    print(f"run: {len(result.status)} steps ({computed} computed, "
+          f"{sum(1 for s in result.status.values() if s == 'cached')} cached) in {elapsed:.1f} s; "
+          f"record {result.run_file}")
+    if result.failed:
+        print("run: these steps did not finish:", file=sys.stderr)
+        for failure in result.failed:
+            why = "skipped (an upstream step failed)" if failure.skipped else failure.error.splitlines()[-1]
+            print(f"  {failure.label}: {why}\n    log: {failure.log_path}", file=sys.stderr)
+    if not args.no_report:
+        _write_report(workflow, store, args.reports, partial=bool(result.failed))
+    return 1 if result.failed else 0
+
+
+def _print_banner(workflow) -> None:
+    edit = workflow.cells[-1].edit
+    editor = edit.params.get("editor", "synthetic") if edit is not None else "-"
+    encoder = edit.params.get("encoder", "proxy") if edit is not None else "-"
+    print(f"workflow {workflow.name}: scene '{workflow.scene_name}' ({workflow.scene_origin}), edit "
+          f"'{workflow.edit_id}': \"{workflow.instruction}\"; {len(workflow.cells) - 1} edited cells + original")
+    if editor == "synthetic":
+        print("  editor: synthetic InstructPix2Pix EMULATOR (a simulator, not the diffusion model)")
+    if encoder == "proxy":
+        print("  encoder: proxy (weight-free colour/structure stand-in for CLIP; scores are not CLIP scores)")
+
+
+def _write_report(workflow, store, out_dir: Path | None, partial: bool) -> None:
+    from stages.commands.report import report_workflow
+    from stages.report import ReportError
+
+    try:
+        index = report_workflow(workflow, store, out_dir)
+    except ReportError as err:
+        if partial:
+            print(f"report: not written: {err}", file=sys.stderr)
+            return
+        raise
+    print(f"report: {index}")
