@@ -40,6 +40,21 @@ class RunResult:
     def ok(self) -> bool:
         return not self.failed
 
+    def summary(self) -> str:
+        """Counts per status, then one line per failed step with its error and log file."""
+        counts: dict[str, int] = {}
+        for status in self.status.values():
+            counts[status] = counts.get(status, 0) + 1
+        lines = [", ".join(f"{n} {status}" for status, n in sorted(counts.items()))]
+        for f in self.failed:
+            if f.skipped:
+                lines.append(f"  skipped {f.label}: an upstream step failed")
+            else:
+                lines.append(f"  FAILED {f.label}: {f.error} (log: {f.log_path})")
+        if self.run_file is not None:
+            lines.append(f"run record: {self.run_file}")
+        return "\n".join(lines)
+
 
 def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Store, executor: Executor,
               run_dir: Path, quiet: bool = False) -> RunResult:

@@ -52,7 +52,7 @@ def counted(trace: Path) -> int:
 @pytest.mark.slow
 def test_sigkill_mid_run_resumes_from_checkpoint_with_identical_result(tmp_path):
     trace = tmp_path / "trace"
-    n = 40
+    n = 60
     steps = [{"stage": "count", "params": {"n": n, "trace": str(trace), "step_seconds": 0.05}, "label": "c"}]
     proc = start(tmp_path, "killed", steps, tmp_path / "cache")
     wait_for(lambda: counted(trace) >= 8, what="8 counted steps")

@@ -133,6 +133,9 @@ def test_failure_skips_dependants_but_not_independent_steps(tmp_path):
     statuses = {s["label"]: (s["status"], s["error"]) for s in record["steps"]}
     assert statuses["after-bad"][0] == "skipped" and "BadInputError" in statuses["bad"][1]
     assert record["status"] == "failed"
+    summary = result.summary().splitlines()
+    assert summary[0] == "2 done, 2 failed, 1 skipped"
+    assert any(line.startswith("  FAILED boom: RuntimeError: kaboom (log: ") for line in summary)
     assert not list((store.root / "tmp").iterdir())                  # failed attempts leave no tmp
 
 
