@@ -52,7 +52,7 @@ def fifty_step_dag(source: Path) -> list[Step]:
     return steps
 
 
-def make_image_folder(folder: Path, count: int = 100, size: int = 200_000) -> int:
+def make_image_folder(folder: Path, count: int = 100, size: int = 1_000_000) -> int:
     folder.mkdir(parents=True)
     old = time.time() - 3600          # older than the racy window, as user data is
     for i in range(count):

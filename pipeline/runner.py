@@ -79,7 +79,7 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
         log_path = record.logs / f"{log_name}.log"
         inputs = {name: str(store.object_path(keyed[up].key)) for name, up in first.upstream.items()}
         inputs.update({name: str(path) for name, path in first.external.items()})
-        jobs[key] = Job(key=key, stage_ref=f"{first.stage_cls.__module__}:{first.stage_cls.__qualname__}",
+        jobs[key] = Job(key=key, stage_ref=registry[first.step.stage],
                         params=params_dict(first.params), inputs=inputs, key_inputs=first.key_inputs,
                         label=first.label, log_path=str(log_path), cache_root=str(store.root),
                         threads=executor.threads, quiet=quiet, lease_ttl_s=store.lease_ttl_s)
