@@ -22,6 +22,8 @@ EDITOR_KINDS = ("synthetic", "ip2p")
 class EditorError(ValueError):
     """An editor that cannot be built or called: the message names the file/field and what to do."""
 
+    user_error = True   # the CLI prints the message (exit 2) instead of a traceback
+
 
 @runtime_checkable
 class Editor(Protocol):

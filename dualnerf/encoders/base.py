@@ -9,6 +9,8 @@ import numpy as np
 class EncoderError(ValueError):
     """An encoder that cannot be loaded or asked for: the message names the file or text and what to do."""
 
+    user_error = True   # the CLI prints the message (exit 2) instead of a traceback
+
 
 @runtime_checkable
 class ImageTextEncoder(Protocol):
