@@ -31,12 +31,11 @@ def sha256_file(path: Path) -> str:
     return digest.hexdigest()
 
 
-def write_json_atomic(path: Path, data: object) -> None:
-    """Write JSON to a unique temp name in the same folder, then os.replace: readers see old or new."""
+def write_json_atomic(path: Path, data: object, indent: int | None = 1) -> None:
+    """Write JSON to a unique temp name in the same folder, then os.replace: readers see old or new.
+    indent=None is ~10x faster (the C encoder only handles one-shot, unindented output)."""
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=1, sort_keys=True)
-        f.write("\n")
+    tmp.write_text(json.dumps(data, indent=indent, sort_keys=True) + "\n", encoding="utf-8")
     os.replace(tmp, path)
 
 
@@ -97,5 +96,5 @@ class ContentHasher:
     def save(self) -> None:
         if self._dirty and self.memo_path is not None:
             self.memo_path.parent.mkdir(parents=True, exist_ok=True)
-            write_json_atomic(self.memo_path, self._memo)
+            write_json_atomic(self.memo_path, self._memo, indent=None)
             self._dirty = False

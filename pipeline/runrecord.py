@@ -47,7 +47,7 @@ class RunRecord:
     def save(self) -> None:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.data["updated"] = time.time()
-        write_json_atomic(self.path, self.data)
+        write_json_atomic(self.path, self.data, indent=None)   # rewritten at every state change: keep it fast
 
 
 def read_runs(runs_dir: Path, extra_files: list[Path] = ()) -> list[dict[str, Any]]:
