@@ -6,7 +6,9 @@ exists). The holder's heartbeat thread pushes `expires` forward every `ttl/3` se
 stale when it has expired, or when its holder is a dead process on this host; a stale lease is
 broken by renaming it aside (checking afterwards that the moved file is the stale one, so a fresh
 lease created in between is put back). Leases only prevent duplicate work: correctness comes from
-publishing results with a single rename.
+publishing results with a single rename. Hosts sharing one cache folder need roughly synchronised
+clocks (expiry times are compared across hosts); a holder on another host that died is taken over
+after at most `ttl_s` (30 s by default).
 """
 from __future__ import annotations
 
