@@ -183,9 +183,7 @@ def _ray_execute(job: Job) -> Outcome:
 
 
 def make_executor(kind: str, *, jobs: int = 1, address: str | None = None) -> Executor:
-    """'serial' | 'process' | 'ray' (the CLI's --executor); jobs > 1 with 'serial' means 'process'."""
-    if kind == "serial" and jobs > 1:
-        kind = "process"
+    """'serial' | 'process' | 'ray' (the CLI's --executor). `jobs` sizes the process pool only."""
     if kind == "serial":
         return SerialExecutor()
     if kind == "process":
