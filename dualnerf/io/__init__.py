@@ -2,4 +2,4 @@
 from dualnerf.io.errors import InputError
 from dualnerf.io.preprocess import METHODS, PreprocessConfig, detect_method, preprocess
 
-__all__ = ["InputError", "METHODS", "PreprocessConfig", "detect_method", "preprocess"]
+__all__ = ["METHODS", "InputError", "PreprocessConfig", "detect_method", "preprocess"]

@@ -8,7 +8,7 @@ import numpy as np
 
 from dualnerf.dataset import Dataset
 from dualnerf.io.errors import InputError
-from dualnerf.io.images import read_image, resize_long_side, resized_shape
+from dualnerf.io.images import read_image, resize_long_side
 from dualnerf.io.normalise import apply_normalisation, fit_normalisation, near_far
 from dualnerf.io.reconstruction import Reconstruction
 
@@ -33,6 +33,18 @@ def check_uniform_size(names: list[str], sizes: np.ndarray, where: str) -> None:
                      f"remove them.")
 
 
+def distortion_pixels(coeffs: np.ndarray, intrinsics: np.ndarray, width: int, height: int) -> float:
+    """How far (pixels) the lens distortion moves the image corner; below a twentieth of a pixel,
+    undistorting would only blur the image."""
+    k1, k2, p1, p2, k3 = (list(coeffs) + [0.0] * 5)[:5]
+    fx, fy, cx, cy = intrinsics
+    x, y = max(cx, width - cx) / fx, max(cy, height - cy) / fy
+    r2 = x * x + y * y
+    radial = abs(k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3) * np.sqrt(r2)
+    tangential = 2 * abs(p1) * x * y + abs(p2) * (r2 + 2 * x * x) + abs(p1) * (r2 + 2 * y * y) + 2 * abs(p2) * x * y
+    return float((radial + tangential) * max(fx, fy))
+
+
 def build_dataset(recon: Reconstruction, max_size: int, holdout_every: int, source: dict) -> Dataset:
     import cv2
 
@@ -45,7 +57,7 @@ def build_dataset(recon: Reconstruction, max_size: int, holdout_every: int, sour
             raise InputError(f"{path} is {image.shape[1]}x{image.shape[0]} but its camera says {w}x{h}; fix "
                              f"the intrinsics (w, h) or the image.")
         fx, fy, cx, cy = recon.intrinsics[i]
-        if np.any(recon.distortion[i] != 0):
+        if distortion_pixels(recon.distortion[i], recon.intrinsics[i], w, h) > 0.05:
             # Undistort to a pinhole camera with the same K: the dataset format is pinhole only.
             k = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])   # OpenCV: pixel centre = integer
             image = cv2.undistort(image, k, recon.distortion[i])

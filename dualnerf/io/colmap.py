@@ -61,7 +61,7 @@ def reconstruction_from_pycolmap(model, image_dir: Path, total: int | None = Non
     registered = len(names)
     errors = [p.error for p in model.points3D.values()]
     report = {"registered": registered, "total": total if total is not None else registered,
-              "points": int(len(points)),
+              "points": len(points),
               "mean_reprojection_error": float(np.mean(errors)) if errors else None}
     return Reconstruction(names=names, image_paths=paths, c2w=np.array(c2w).reshape(-1, 4, 4),
                           intrinsics=np.array(intrinsics).reshape(-1, 4),
@@ -78,7 +78,7 @@ def import_colmap_model(source: Path) -> Reconstruction:
         raise InputError(f"{source}: no COLMAP model (cameras.bin/.txt) in it, in sparse/0 or in sparse.")
     try:
         model = pycolmap.Reconstruction(str(model_dir))
-    except Exception as err:    # pycolmap raises plain RuntimeError on malformed files
+    except (RuntimeError, ValueError) as err:    # pycolmap raises plain RuntimeError on malformed files
         raise InputError(f"{model_dir}: the COLMAP model could not be read ({err}); re-export it.") from None
     image_dir = find_image_folder(source, model_dir)
     recon = reconstruction_from_pycolmap(model, image_dir)

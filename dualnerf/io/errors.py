@@ -4,3 +4,5 @@ from __future__ import annotations
 
 class InputError(ValueError):
     """User input that preprocess cannot use (bad images, poses, intrinsics, failed SfM)."""
+
+    user_error = True        # the CLI prints the message and exits 2 (see pipeline.errors)

@@ -30,6 +30,7 @@ class PreprocessConfig:
     matcher: str = "auto"           # auto | exhaustive | sequential
     min_registered_fraction: float = 0.5
     single_camera: bool = True      # one shared camera for all images (same device, same zoom)
+    camera_model: str = "SIMPLE_RADIAL"   # COLMAP model fitted by SfM; distortion is undone afterwards
 
 
 def detect_method(source: Path) -> str:
@@ -61,8 +62,13 @@ def preprocess(source: Path, out: Path, config: PreprocessConfig, scratch: Path 
     else:
         from dualnerf.io.sfm import run_sfm
 
-        scratch = Path(scratch) if scratch is not None else out / ".sfm"
-        recon = run_sfm(source, scratch, config)
+        if scratch is None:
+            import tempfile
+
+            with tempfile.TemporaryDirectory(prefix="dualnerf-sfm-") as tmp:
+                recon = run_sfm(source, Path(tmp), config)
+        else:
+            recon = run_sfm(source, Path(scratch), config)
     recon = _sorted_by_name(recon)
     dataset = build_dataset(recon, config.max_size, config.holdout_every,
                             source={"method": method, "path": str(source.resolve()), "config": asdict(config)})

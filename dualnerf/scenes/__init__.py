@@ -3,5 +3,16 @@ from dualnerf.scenes.generate import SceneConfigError, generate_scene, scene_cam
 from dualnerf.scenes.library import SCENES, SceneConfig
 from dualnerf.scenes.spec import EditSpec, SceneSpec, SceneSpecError, load_gt_edit, load_scene_spec
 
-__all__ = ["SCENES", "SceneConfig", "SceneConfigError", "generate_scene", "scene_cameras", "scene_config",
-           "EditSpec", "SceneSpec", "SceneSpecError", "load_gt_edit", "load_scene_spec"]
+__all__ = [
+           "SCENES",
+           "EditSpec",
+           "SceneConfig",
+           "SceneConfigError",
+           "SceneSpec",
+           "SceneSpecError",
+           "generate_scene",
+           "load_gt_edit",
+           "load_scene_spec",
+           "scene_cameras",
+           "scene_config",
+]

@@ -9,7 +9,7 @@ import numpy as np
 
 from dualnerf.scenes.cameras import OPENCV_TO_OPENGL, orbit
 from dualnerf.scenes.library import BUILDERS, SCENES, SceneConfig
-from dualnerf.scenes.render import base_albedos, camera_rays, shade, to_image, trace
+from dualnerf.scenes.render import camera_rays, pattern_fields, shade, to_image, trace
 
 GENERATOR = "dualnerf.scenes procedural ray caster (synthetic scene, not a photograph)"
 POINTS_PER_VIEW = 200
@@ -17,6 +17,8 @@ POINTS_PER_VIEW = 200
 
 class SceneConfigError(ValueError):
     """An unknown scene name or override; the message lists what is allowed."""
+
+    user_error = True        # the CLI prints the message and exits 2 (see pipeline.errors)
 
 
 def scene_config(name: str, **overrides) -> SceneConfig:
@@ -55,63 +57,85 @@ def render_view(config: SceneConfig, world, c2w: np.ndarray, variants) -> tuple[
     o, d = camera_rays(c2w, f, f, config.width * s / 2.0, config.height * s / 2.0,
                        config.width * s, config.height * s)
     geometry = trace(world, o, d, pixel_angle=1.0 / f)
-    base = base_albedos(world, geometry)
+    fields = pattern_fields(world, geometry)
     images = {}
     for variant in variants:
-        colour = shade(world, geometry, variant, base)
+        colour = shade(world, geometry, variant, fields)
         images[variant.id if variant else None] = to_image(colour, config.width, config.height, s)
     return images, geometry
 
 
-def generate_scene(name: str, out: Path, *, seed: int = 0, format: str = "scene", progress=None,
-                   **overrides) -> Path:
+def generate_scene(name: str, out: Path, *, seed: int = 0, format: str = "scene", workers: int = 1,
+                   progress=None, **overrides) -> Path:
     """Render scene `name` into folder `out` (created) and return it.
 
     format "scene" writes the scene-folder layout; "nerfstudio" adds a top-level transforms.json
     (file paths relative to it), so the same views can be imported as a nerfstudio dataset.
     `overrides` replace SceneConfig fields (width, height, n_views, arc_degrees, supersample ...).
-    `progress(i, n)` is called after each view.
+    `workers` > 1 renders views in that many processes (same result). `progress(done, total)` is
+    called after each view.
     """
-    import cv2
-
     if format not in ("scene", "nerfstudio"):
         raise SceneConfigError(f"unknown scene format '{format}'; use 'scene' or 'nerfstudio'.")
     config = scene_config(name, **overrides)
-    builder, edits = BUILDERS[name]
-    world = builder(config, seed)
+    _, edits = BUILDERS[name]
     c2w_all, intrinsics = scene_cameras(config)
     out = Path(out)
     for sub in ["images", "gt"] + [f"gt/edits/{e.id}/{k}" for e in edits for k in ("images", "masks")]:
         (out / sub).mkdir(parents=True, exist_ok=True)
-    variants = [None] + [e.variant for e in edits]
-    rng = np.random.default_rng([seed, 7])   # sparse-point sampling only
-    points, colours = [], []
-    for i, c2w in enumerate(c2w_all):
-        images, geometry = render_view(config, world, c2w, variants)
-        original = images[None]
-        _write_png(cv2, out / "images" / view_name(i), original)
-        for edit in edits:
-            edited, mask = edit_ground_truth(original, images[edit.id], config.mask_threshold)
-            _write_png(cv2, out / "gt/edits" / edit.id / "images" / view_name(i), edited)
-            if not cv2.imwrite(str(out / "gt/edits" / edit.id / "masks" / view_name(i)),
-                               mask.astype(np.uint8) * 255):
-                raise OSError(f"could not write a mask into {out}")
-        pick = rng.choice(len(geometry.points), size=min(POINTS_PER_VIEW, len(geometry.points)), replace=False)
-        points.append(geometry.points[pick])
-        s = config.supersample
-        rows, cols = (pick // (config.width * s)) // s, (pick % (config.width * s)) // s
-        colours.append(original[rows, cols])
-        if progress is not None:
-            progress(i + 1, len(c2w_all))
-    write_ply(out / "gt" / "sparse_pc.ply", np.concatenate(points), np.concatenate(colours))
+    n = len(c2w_all)
+    results = [None] * n
+    if workers > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        # spawn, not fork: the caller may hold threads (torch, a progress bar) that fork would copy.
+        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(_render_and_write, name, seed, overrides, str(out), i): i for i in range(n)}
+            for done, future in enumerate(as_completed(futures), 1):
+                results[futures[future]] = future.result()
+                if progress is not None:
+                    progress(done, n)
+    else:
+        for i in range(n):
+            results[i] = _render_and_write(name, seed, overrides, str(out), i)
+            if progress is not None:
+                progress(i + 1, n)
+    points = np.concatenate([r[0] for r in results])
+    colours = np.concatenate([r[1] for r in results])
+    write_ply(out / "gt" / "sparse_pc.ply", points, colours)
     _write_transforms(out / "gt" / "transforms.json", c2w_all, intrinsics, config, prefix="../images/",
                       ply="sparse_pc.ply")
     if format == "nerfstudio":
-        write_ply(out / "sparse_pc.ply", np.concatenate(points), np.concatenate(colours))
+        write_ply(out / "sparse_pc.ply", points, colours)
         _write_transforms(out / "transforms.json", c2w_all, intrinsics, config, prefix="images/",
                           ply="sparse_pc.ply")
     _write_scene_toml(out / "scene.toml", config, seed, edits)
     return out
+
+
+def _render_and_write(name: str, seed: int, overrides: dict, out: str, i: int) -> tuple[np.ndarray, np.ndarray]:
+    """Render view `i` with its edits, write its files; return sparse points sampled from its hits."""
+    import cv2
+
+    out = Path(out)
+    config = scene_config(name, **overrides)
+    builder, edits = BUILDERS[name]
+    world = builder(config, seed)
+    c2w = scene_cameras(config)[0][i]
+    images, geometry = render_view(config, world, c2w, [None] + [e.variant for e in edits])
+    original = images[None]
+    _write_png(cv2, out / "images" / view_name(i), original)
+    for edit in edits:
+        edited, mask = edit_ground_truth(original, images[edit.id], config.mask_threshold)
+        _write_png(cv2, out / "gt/edits" / edit.id / "images" / view_name(i), edited)
+        if not cv2.imwrite(str(out / "gt/edits" / edit.id / "masks" / view_name(i)), mask.astype(np.uint8) * 255):
+            raise OSError(f"could not write a mask into {out}")
+    rng = np.random.default_rng([seed, 7, i])   # sparse-point sampling only
+    pick = rng.choice(len(geometry.points), size=min(POINTS_PER_VIEW, len(geometry.points)), replace=False)
+    s = config.supersample
+    rows, cols = (pick // (config.width * s)) // s, (pick % (config.width * s)) // s
+    return geometry.points[pick], original[rows, cols]
 
 
 def edit_ground_truth(original: np.ndarray, edited: np.ndarray, threshold: int) -> tuple[np.ndarray, np.ndarray]:

@@ -30,11 +30,24 @@ class Primitive:
     centre: tuple[float, float, float] = (0.0, 0.0, 0.0)
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
 
-    def hit(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        o_local = (o - np.asarray(self.centre)) @ self.rotation
-        d_local = d @ self.rotation
-        t, n_local = self._hit_local(o_local, d_local)
-        return t, n_local @ self.rotation.T
+    def hit(self, o: np.ndarray, d: np.ndarray, candidates: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
+        """`candidates`: indices of the rays that may hit (the caller's bounding-sphere test); the
+        others get t = inf without being traced."""
+        t = np.full(len(o), np.inf)
+        n = np.zeros_like(o)
+        if candidates is None:
+            candidates = slice(None)
+        o_local = (o[candidates] - np.asarray(self.centre)) @ self.rotation
+        d_local = d[candidates] @ self.rotation
+        t_c, n_local = self._hit_local(o_local, d_local)
+        t[candidates] = t_c
+        n[candidates] = n_local @ self.rotation.T
+        return t, n
+
+    def bound(self) -> tuple[np.ndarray, float] | None:
+        """A world-space bounding sphere (centre, radius), or None for unbounded shapes."""
+        return None
 
     def _hit_local(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
@@ -68,6 +81,12 @@ class Polyhedron(Primitive):
 
     normals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     offsets: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    bound_radius: float = np.inf     # radius around `centre` that contains the solid
+
+    def bound(self):
+        if not np.isfinite(self.bound_radius):
+            return None
+        return np.asarray(self.centre, float), self.bound_radius
 
     def _hit_local(self, o, d):
         n_rays = len(o)
@@ -97,7 +116,8 @@ def box(centre, half_extent, angle: float = 0.0) -> Polyhedron:
     hx, hy, hz = half_extent
     normals = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
     offsets = np.array([hx, hx, hy, hy, hz, hz], float)
-    return Polyhedron(centre=tuple(centre), rotation=rotation_z(angle), normals=normals, offsets=offsets)
+    return Polyhedron(centre=tuple(centre), rotation=rotation_z(angle), normals=normals, offsets=offsets,
+                      bound_radius=float(np.linalg.norm(half_extent)))
 
 
 def prism_tent(centre, length: float, width: float, height: float, angle: float = 0.0) -> Polyhedron:
@@ -106,7 +126,8 @@ def prism_tent(centre, length: float, width: float, height: float, angle: float 
     # Sloped sides pass through (y=+-half_w, z=0) and the ridge (y=0, z=height).
     normals = np.array([[0, height, half_w], [0, -height, half_w], [0, 0, -1], [1, 0, 0], [-1, 0, 0]], float)
     offsets = np.array([height * half_w, height * half_w, 0.0, half_l, half_l], float)
-    return Polyhedron(centre=tuple(centre), rotation=rotation_z(angle), normals=normals, offsets=offsets)
+    return Polyhedron(centre=tuple(centre), rotation=rotation_z(angle), normals=normals, offsets=offsets,
+                      bound_radius=float(np.sqrt(half_l ** 2 + half_w ** 2 + height ** 2)))
 
 
 def pyramid(centre, radius: float, height: float, sides: int = 8, angle: float = 0.0) -> Polyhedron:
@@ -117,12 +138,16 @@ def pyramid(centre, radius: float, height: float, sides: int = 8, angle: float =
     side = np.stack([height * np.cos(phis), height * np.sin(phis), np.full(sides, apothem)], axis=1)
     normals = np.concatenate([side, [[0.0, 0.0, -1.0]]])
     offsets = np.concatenate([np.full(sides, height * apothem), [0.0]])
-    return Polyhedron(centre=tuple(centre), normals=normals, offsets=offsets)
+    return Polyhedron(centre=tuple(centre), normals=normals, offsets=offsets,
+                      bound_radius=float(np.hypot(radius, height)))
 
 
 @dataclass(frozen=True)
 class Ellipsoid(Primitive):
     radii: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    def bound(self):
+        return np.asarray(self.centre, float), float(max(self.radii))
 
     def _hit_local(self, o, d):
         r = np.asarray(self.radii)
@@ -146,6 +171,10 @@ class Cylinder(Primitive):
 
     radius: float = 1.0
     height: float = 1.0
+
+    def bound(self):
+        middle = np.asarray(self.centre, float) + self.rotation[:, 2] * self.height / 2
+        return middle, float(np.hypot(self.radius, self.height / 2))
 
     def _hit_local(self, o, d):
         a = d[:, 0] ** 2 + d[:, 1] ** 2

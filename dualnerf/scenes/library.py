@@ -10,8 +10,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dualnerf.scenes.geometry import (Cylinder, Disk, Dome, Ellipsoid, box, prism_tent, pyramid,
-                                      rotation_y, rotation_z)
+from dualnerf.scenes.geometry import (
+    Cylinder,
+    Disk,
+    Dome,
+    Ellipsoid,
+    box,
+    prism_tent,
+    pyramid,
+    rotation_y,
+    rotation_z,
+)
 from dualnerf.scenes.materials import Material
 from dualnerf.scenes.render import SceneObject, Variant, World
 
@@ -124,8 +133,11 @@ def campsite_world(config: SceneConfig, seed: int) -> World:
         SceneObject("rock_c", Ellipsoid(centre=(-2.6, 0.2, 0.05), radii=(0.3, 0.3, 0.22)), ROCK),
         SceneObject("seat_log", _log("", (0.0, -2.1, 0.2), 1.8, 0.2, 0.15).primitive, BARK),
         *_tree("pine", -2.2, 2.4, 3.2, conifer=True),
-        *_tree("oak", 2.6, -1.9, 2.6, conifer=False),
-        *_tree("pine2", 3.0, 2.9, 3.6, conifer=True),
+        # Trees outside the camera circle: background with parallax, never between a camera and the camp.
+        *_tree("oak", 8.3, -3.0, 3.4, conifer=False),
+        *_tree("pine2", -4.0, -8.0, 4.2, conifer=True),
+        *_tree("pine3", -8.6, 1.5, 3.8, conifer=True),
+        *_tree("pine4", 3.5, 8.4, 4.0, conifer=True),
         *_background(config),
     ]
     # Campfire: a ring of stones around two crossed logs.

@@ -60,12 +60,37 @@ def camera_rays(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, wid
     return np.broadcast_to(c2w[:3, 3], d.shape).copy(), d
 
 
+def _cone_candidates(origin: np.ndarray, d: np.ndarray, bound) -> np.ndarray | None:
+    """Rays from one shared origin that pass through a bounding sphere: one dot product per ray."""
+    if bound is None:
+        return None
+    centre, radius = bound
+    v = centre - origin
+    dist = float(np.linalg.norm(v))
+    if dist <= radius:
+        return None
+    return np.nonzero(d @ (v / dist) >= np.sqrt(1.0 - (radius / dist) ** 2))[0]
+
+
+def _parallel_candidates(o_plane: np.ndarray, o_along: np.ndarray, basis: np.ndarray, bound
+                         ) -> np.ndarray | None:
+    """Parallel rays (origins projected on the plane across the direction) that pass through a sphere
+    in front of their origin."""
+    if bound is None:
+        return None
+    centre, radius = bound
+    offset = o_plane - centre @ basis[:, :2]
+    near_axis = np.einsum("ij,ij->i", offset, offset) <= radius * radius
+    return np.nonzero(near_axis & (o_along < centre @ basis[:, 2] + radius))[0]
+
+
 def trace(world: World, o: np.ndarray, d: np.ndarray, pixel_angle: float) -> Geometry:
+    """Primary hits of rays that share one origin (a pinhole camera)."""
     t_best = np.full(len(o), np.inf)
     index = np.full(len(o), -1, dtype=np.int64)
     normals = np.zeros_like(o)
     for k, obj in enumerate(world.objects):
-        t, n = obj.primitive.hit(o, d)
+        t, n = obj.primitive.hit(o, d, _cone_candidates(o[0], d, obj.primitive.bound()))
         closer = t < t_best
         t_best = np.where(closer, t, t_best)
         index = np.where(closer, k, index)
@@ -90,18 +115,23 @@ def _sun_visibility(world: World, points, normals, index) -> np.ndarray:
     todo = ~emissive
     o = points[todo] + 1e-3 * normals[todo]
     d = np.broadcast_to(sun, o.shape)
+    # An orthonormal basis whose third axis is the sun direction, for the parallel-ray culling.
+    basis = np.linalg.qr(np.stack([sun, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], axis=1))[0]
+    basis = np.roll(basis, -1, axis=1) * np.sign(basis[:, 0] @ sun)
+    o_projected = o @ basis
     blocked = np.zeros(len(o), dtype=bool)
     for obj in world.objects:
         if isinstance(obj.primitive, Dome):
             continue
-        t, _ = obj.primitive.hit(o, d)
+        candidates = _parallel_candidates(o_projected[:, :2], o_projected[:, 2], basis, obj.primitive.bound())
+        t, _ = obj.primitive.hit(o, d, candidates)
         blocked |= np.isfinite(t)
     lit[todo] = np.where(blocked, 0.0, 1.0)
     return lit
 
 
 def shade(world: World, geometry: Geometry, variant: Variant | None = None,
-          base_albedo: dict[int, np.ndarray] | None = None) -> np.ndarray:
+          fields: dict[int, dict] | None = None) -> np.ndarray:
     """Linear RGB colours (R, 3) in [0, 1] of the traced hits under a material variant."""
     variant = variant or Variant("original")
     sun = np.asarray(world.sun_direction, dtype=np.float64)
@@ -115,10 +145,8 @@ def shade(world: World, geometry: Geometry, variant: Variant | None = None,
         p, fp = geometry.points[sel], geometry.footprint[sel]
         seed = _material_seed(world.seed, k)
         palette = variant.recolour.get(material.tag)
-        if palette is None and base_albedo is not None and k in base_albedo:
-            albedo = base_albedo[k]
-        else:
-            albedo = material.albedo(p, fp, seed, palette)
+        pattern = fields[k] if fields is not None and k in fields else material.pattern_fields(p, fp, seed)
+        albedo = material.colour(pattern, palette)
         if material.emissive:
             colour[sel] = albedo
             continue
@@ -137,14 +165,14 @@ def _material_seed(world_seed: int, k: int) -> int:
     return int(np.random.default_rng([world_seed, k]).integers(0, 2**31))
 
 
-def base_albedos(world: World, geometry: Geometry) -> dict[int, np.ndarray]:
-    """Unedited albedo per object, reused by variants that do not recolour that object."""
+def pattern_fields(world: World, geometry: Geometry) -> dict[int, dict]:
+    """Texture noise fields per visible object, shared by every material variant of the view."""
     out = {}
     for k, obj in enumerate(world.objects):
         sel = np.nonzero(geometry.object_index == k)[0]
         if len(sel):
-            out[k] = obj.material.albedo(geometry.points[sel], geometry.footprint[sel],
-                                         _material_seed(world.seed, k))
+            out[k] = obj.material.pattern_fields(geometry.points[sel], geometry.footprint[sel],
+                                                 _material_seed(world.seed, k))
     return out
 
 

@@ -23,6 +23,8 @@ GT_EDITS_DIR = Path("gt") / "edits"
 class SceneSpecError(ValueError):
     """A scene folder whose scene.toml or ground truth cannot be used; the message says what to fix."""
 
+    user_error = True        # the CLI prints the message and exits 2 (see pipeline.errors)
+
 
 @dataclass(frozen=True)
 class EditSpec:
