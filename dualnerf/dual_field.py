@@ -1,0 +1,139 @@
+"""The dual-field representation (paper Sec. 4.1): a frozen static field f_S and a trainable dynamic field
+f_D fused in hidden-feature space.
+
+API:
+    BlendSchedule(w_max_density=0.1, w_max_color=0.1, rate=0.005)   frozen dataclass
+        weights(step: int) -> (w_density, w_color)                    eq. 6: w = w_max * tanh(rate * t)
+    DualField(static_field: RadianceField, dynamic_field: RadianceField) nn.Module
+        query(x, d, blend=(w_density, w_color) | None, retreat=1.0) -> (h_sigma (M,), h_color (M,3))
+        query_density(x, blend, retreat) -> h_sigma;  query_background(d, blend, retreat) -> (R,3)
+        occupancy_for(blend) -> OccupancyGrid   (static field's grid when blend is None)
+        render_blend: tuple | None              blend to render the saved edit with (set by the edit stage)
+    make_edit_model(static_field, mode: "dual" | "single") -> DualField | RadianceField
+
+Fusion (eqs. 4-5), separately for density and colour features:
+    h = (1 - w) * h^(S) + w * h^(D),   w = gamma * w_schedule
+`retreat` is the simulated-annealing scale gamma in [0, 1] (Sec. 4.2): gamma = 1 keeps the current edit,
+gamma = 0 retreats to the original scene. blend=None renders f_S alone. With w = 0 the output equals f_S
+bit for bit (1.0 * h_S + 0.0 * h_D is exact for finite h_D).
+
+f_S is frozen: its parameters have requires_grad False, are never handed to an optimiser, and it runs
+under torch.no_grad, so a fused step costs one forward of f_S on top of a single-field step.
+
+Initialising f_D (design choice; the paper only says "same architecture"): f_D starts as an exact copy
+of f_S. Then the fused field equals the original scene for every w (no jump as w grows from 0 by eq. 6),
+f_D has to learn only the *change* an edit asks for, and a small w (0.1) can still express any edit that
+f_D can represent, because h = h_S + w * (h_D - h_S) reaches h_S + delta once f_D moves by delta / w. A
+randomly initialised f_D would instead inject w * (noise) into every feature and have to relearn the
+scene's geometry. Since Adam moves parameters by ~lr per step regardless of gradient scale, the fused
+features move ~w times slower than f_D's own: the edit stage may scale f_D's learning rate by 1 / w_max.
+
+Single-field mode (Instruct-NeRF2NeRF baseline): `make_edit_model(f_S, "single")` returns a trainable
+copy of f_S; it is trained and rendered by the same RayTrainer / render_view with blend=None.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from dualnerf.fields import RadianceField
+from dualnerf.occupancy import OccupancyGrid
+
+EDIT_MODES = ("dual", "single")
+
+
+class BlendError(ValueError):
+    """Blend weights or a retreat scale outside [0, 1]."""
+
+
+@dataclass(frozen=True)
+class BlendSchedule:
+    w_max_density: float = 0.1
+    w_max_color: float = 0.1
+    rate: float = 0.005
+
+    def __post_init__(self):
+        for name in ("w_max_density", "w_max_color"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise BlendError(f"BlendSchedule.{name} must be in [0, 1], got {getattr(self, name)}")
+        if self.rate < 0:
+            raise BlendError(f"BlendSchedule.rate must be >= 0, got {self.rate}")
+
+    def weights(self, step: int) -> tuple[float, float]:
+        """Blend weights at editing iteration `step` (eq. 6): w_* = w_*^max tanh(lambda t)."""
+        growth = math.tanh(self.rate * step)
+        return self.w_max_density * growth, self.w_max_color * growth
+
+
+def _effective_blend(blend, retreat: float) -> tuple[float, float]:
+    if not 0.0 <= retreat <= 1.0:
+        raise BlendError(f"retreat scale gamma must be in [0, 1], got {retreat}")
+    w_density, w_color = (float(w) for w in blend)
+    if not (0.0 <= w_density <= 1.0 and 0.0 <= w_color <= 1.0):
+        raise BlendError(f"blend weights must be in [0, 1], got {blend}")
+    return retreat * w_density, retreat * w_color
+
+
+def _fuse(h_static: torch.Tensor, h_dynamic: torch.Tensor, w: float) -> torch.Tensor:
+    """Eqs. 4-5: h = (1 - w) h^(S) + w h^(D)."""
+    return (1.0 - w) * h_static + w * h_dynamic
+
+
+class DualField(nn.Module):
+    def __init__(self, static_field: RadianceField, dynamic_field: RadianceField):
+        super().__init__()
+        if static_field.config != dynamic_field.config:
+            raise ValueError("DualField: static and dynamic fields must share one FieldConfig (same architecture)")
+        self.config = static_field.config
+        self.static_field = static_field
+        self.dynamic_field = dynamic_field
+        self.static_field.requires_grad_(False)
+        # The fused field's geometry starts as the static one's; it is updated during editing.
+        self.occupancy = copy.deepcopy(static_field.occupancy)
+        self.render_blend: tuple[float, float] | None = None
+
+    def query(self, x, d, blend=None, retreat: float = 1.0):
+        with torch.no_grad():
+            h_sigma_s, h_color_s = self.static_field(x, d)
+        if blend is None:
+            return h_sigma_s, h_color_s
+        w_density, w_color = _effective_blend(blend, retreat)
+        h_sigma_d, h_color_d = self.dynamic_field(x, d)
+        return _fuse(h_sigma_s, h_sigma_d, w_density), _fuse(h_color_s, h_color_d, w_color)
+
+    def query_density(self, x, blend=None, retreat: float = 1.0):
+        with torch.no_grad():
+            h_sigma_s = self.static_field.density_hidden(x)
+        if blend is None:
+            return h_sigma_s
+        w_density, _ = _effective_blend(blend, retreat)
+        return _fuse(h_sigma_s, self.dynamic_field.density_hidden(x), w_density)
+
+    def query_background(self, d, blend=None, retreat: float = 1.0):
+        with torch.no_grad():
+            h_bg_s = self.static_field.background_hidden(d)
+        if blend is None:
+            return h_bg_s
+        _, w_color = _effective_blend(blend, retreat)
+        return _fuse(h_bg_s, self.dynamic_field.background_hidden(d), w_color)
+
+    def occupancy_for(self, blend=None) -> OccupancyGrid:
+        return self.static_field.occupancy if blend is None else self.occupancy
+
+
+def make_edit_model(static_field: RadianceField, mode: str = "dual") -> DualField | RadianceField:
+    """The model the editing stage trains, built from a fitted static field (which is not modified)."""
+    if mode not in EDIT_MODES:
+        raise ValueError(f"edit mode must be one of {EDIT_MODES}, got {mode!r}")
+    if mode == "single":
+        field = copy.deepcopy(static_field)
+        field.requires_grad_(True)
+        return field
+    static = copy.deepcopy(static_field)
+    dynamic = copy.deepcopy(static_field)
+    dynamic.requires_grad_(True)
+    return DualField(static, dynamic)

@@ -1,0 +1,80 @@
+"""Input encodings for the radiance field: multi-resolution dense feature grids and direction SH.
+
+API:
+    DenseGridEncoding(resolutions: tuple[int, ...], features: int, generator: torch.Generator | None)
+        forward(x: (M,3) in [-1,1]^3) -> (M, len(resolutions) * features)
+    spherical_harmonics(d: (M,3) unit, degree: int) -> (M, degree**2)
+
+Why dense grids: on a 2-core CPU a few trilinearly interpolated dense grids (F.grid_sample) train an
+order of magnitude faster than an 8x256 MLP, need no custom kernels, and at the scene scales used here
+(normalised cube, <=128^3 cells) fit comfortably in memory.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+# Initial grid values are tiny so the MLP initially sees ~zero features (as in hash-grid NeRFs).
+_GRID_INIT_SCALE = 1e-4
+
+
+class DenseGridEncoding(nn.Module):
+    """Concatenated trilinear features from dense grids at several resolutions over [-1,1]^3."""
+
+    def __init__(self, resolutions: tuple[int, ...], features: int, generator: torch.Generator | None = None):
+        super().__init__()
+        self.resolutions = tuple(int(r) for r in resolutions)
+        self.features = int(features)
+        self.grids = nn.ParameterList()
+        for res in self.resolutions:
+            grid = torch.empty(1, self.features, res, res, res)
+            nn.init.uniform_(grid, -_GRID_INIT_SCALE, _GRID_INIT_SCALE, generator=generator)
+            self.grids.append(nn.Parameter(grid))
+
+    @property
+    def output_dim(self) -> int:
+        return len(self.resolutions) * self.features
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        m = x.shape[0]
+        # grid_sample wants (N, D_out, H_out, W_out, 3); coordinate order (x, y, z) indexes (W, H, D).
+        coords = x.reshape(1, m, 1, 1, 3).to(self.grids[0].dtype)
+        parts = []
+        for grid in self.grids:
+            sampled = F.grid_sample(grid, coords, mode="bilinear", padding_mode="border", align_corners=True)
+            parts.append(sampled.reshape(self.features, m))
+        return torch.cat(parts, dim=0).t()
+
+
+def spherical_harmonics(d: torch.Tensor, degree: int) -> torch.Tensor:
+    """Real spherical harmonics of unit directions, bands 0..degree-1 (degree**2 components, degree<=4).
+
+    Constants are the standard orthonormal real SH normalisation (integral of Y_i Y_j over the sphere = δ_ij).
+    """
+    if not 1 <= degree <= 4:
+        raise ValueError(f"spherical_harmonics: degree must be in 1..4, got {degree}")
+    x, y, z = d.unbind(-1)
+    out = [torch.full_like(x, 0.28209479177387814)]
+    if degree > 1:
+        out += [-0.48860251190291987 * y, 0.48860251190291987 * z, -0.48860251190291987 * x]
+    if degree > 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [
+            1.0925484305920792 * x * y,
+            -1.0925484305920792 * y * z,
+            0.94617469575755997 * zz - 0.31539156525251999,
+            -1.0925484305920792 * x * z,
+            0.54627421529603959 * (xx - yy),
+        ]
+    if degree > 3:
+        out += [
+            0.59004358992664352 * y * (-3.0 * xx + yy),
+            2.8906114426405538 * x * y * z,
+            0.45704579946446572 * y * (1.0 - 5.0 * zz),
+            0.3731763325901154 * z * (5.0 * zz - 3.0),
+            0.45704579946446572 * x * (1.0 - 5.0 * zz),
+            1.4453057213202769 * z * (xx - yy),
+            0.59004358992664352 * x * (-xx + 3.0 * yy),
+        ]
+    return torch.stack(out, dim=-1)

@@ -1,0 +1,171 @@
+"""One radiance field f (paper eq. 1, modified as in Sec. 4.1 to output hidden features).
+
+API:
+    FieldConfig(...)                      frozen dataclass; `to_dict()` / `FieldConfig.from_dict(d)`
+    RadianceField(config, generator=None) nn.Module
+        forward(x: (M,3) in [-1,1]^3, d: (M,3) unit) -> (h_sigma: (M,), h_color: (M,3))
+        background_hidden(d: (R,3) unit) -> (R,3)   pre-sigmoid background colour (see below)
+        query(x, d, blend=None, retreat=1.0)      same as forward; rejects a blend (single field)
+        occupancy: OccupancyGrid                  empty-space skipping state, saved with the model
+    decode_density(h_sigma) -> sigma >= 0        D_sigma: truncated exponential
+    decode_color(h_color) -> rgb in (0,1)        D_c: sigmoid
+
+Hidden features are *pre-activation* values: the paper's decoders D_sigma and D_c are plain activation
+functions (Sec. 4.4), so fusing two fields (eqs. 4-5, `dualnerf.dual_field`) happens on these values.
+
+Background: rays that leave the normalised cube [-1,1]^3 with transmittance left see a background
+colour. `background="learned"` gives each field a view-dependent background (a linear map of the
+direction's SH features, decoded with the same sigmoid and fused like h_color), which suits captured
+scenes with sky or far walls; "white" / "black" use a constant.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from dualnerf.encoding import DenseGridEncoding, spherical_harmonics
+from dualnerf.occupancy import OccupancyGrid
+
+BACKGROUNDS = ("learned", "white", "black")
+# exp() beyond this would overflow float32 rendering maths; the backward uses the same clamp.
+_TRUNC_EXP_MAX = 15.0
+
+
+class FieldConfigError(ValueError):
+    """A field configuration that cannot build a model; the message names the field and a fix."""
+
+
+@dataclass(frozen=True)
+class FieldConfig:
+    grid_resolutions: tuple[int, ...] = (16, 32, 64, 128)
+    grid_features: int = 2
+    hidden_width: int = 64
+    geo_features: int = 15           # density-MLP outputs passed on to the colour MLP
+    direction_degree: int = 4        # SH bands for the view direction (degree**2 features)
+    density_bias: float = -1.0       # initial h_sigma offset: start nearly transparent
+    background: str = "learned"
+    samples_per_ray: int = 256       # uniform samples in the ray/cube overlap (before occupancy skipping)
+    occupancy_resolution: int = 64
+
+    def __post_init__(self):
+        if self.background not in BACKGROUNDS:
+            raise FieldConfigError(f"FieldConfig.background must be one of {BACKGROUNDS}, got {self.background!r}")
+        if not self.grid_resolutions or min(self.grid_resolutions) < 2:
+            raise FieldConfigError(f"FieldConfig.grid_resolutions needs values >= 2, got {self.grid_resolutions}")
+        for name in ("grid_features", "hidden_width", "geo_features", "samples_per_ray", "occupancy_resolution"):
+            if getattr(self, name) < 1:
+                raise FieldConfigError(f"FieldConfig.{name} must be >= 1, got {getattr(self, name)}")
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["grid_resolutions"] = list(self.grid_resolutions)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> FieldConfig:
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise FieldConfigError(f"field config has unknown keys {unknown}; the model was saved by a newer "
+                                   "version of dualnerf, upgrade or refit")
+        d = dict(d)
+        if "grid_resolutions" in d:
+            d["grid_resolutions"] = tuple(int(r) for r in d["grid_resolutions"])
+        return cls(**d)
+
+
+class _TruncExp(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        clamped = x.clamp(max=_TRUNC_EXP_MAX)
+        ctx.save_for_backward(clamped)
+        return torch.exp(clamped)
+
+    @staticmethod
+    def backward(ctx, grad):
+        # Gradient of exp at the clamped value keeps flowing for large inputs (no dead units).
+        (clamped,) = ctx.saved_tensors
+        return grad * torch.exp(clamped)
+
+
+def decode_density(h_sigma: torch.Tensor) -> torch.Tensor:
+    """D_sigma (Sec. 4.4): truncated exponential of the density feature."""
+    return _TruncExp.apply(h_sigma)
+
+
+def decode_color(h_color: torch.Tensor) -> torch.Tensor:
+    """D_c (Sec. 4.4): sigmoid of the colour feature."""
+    return torch.sigmoid(h_color)
+
+
+def _linear(n_in: int, n_out: int, generator: torch.Generator | None) -> nn.Linear:
+    layer = nn.Linear(n_in, n_out)
+    bound = (6.0 / (n_in + n_out)) ** 0.5
+    nn.init.uniform_(layer.weight, -bound, bound, generator=generator)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+class RadianceField(nn.Module):
+    """Feature grids + tiny MLPs -> (h_sigma, h_color) hidden features (Sec. 4.1)."""
+
+    def __init__(self, config: FieldConfig = FieldConfig(), generator: torch.Generator | None = None):
+        super().__init__()
+        self.config = config
+        self.encoding = DenseGridEncoding(config.grid_resolutions, config.grid_features, generator)
+        width = config.hidden_width
+        self.density_mlp = nn.Sequential(
+            _linear(self.encoding.output_dim, width, generator), nn.ReLU(),
+            _linear(width, 1 + config.geo_features, generator))
+        with torch.no_grad():
+            self.density_mlp[-1].bias[0] = config.density_bias
+        n_dir = config.direction_degree ** 2
+        self.color_mlp = nn.Sequential(
+            _linear(config.geo_features + n_dir, width, generator), nn.ReLU(),
+            _linear(width, 3, generator))
+        self.background_head = _linear(n_dir, 3, generator) if config.background == "learned" else None
+        self.occupancy = OccupancyGrid(config.occupancy_resolution)
+
+    def forward(self, x: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.density_mlp(self.encoding(x))
+        h_sigma, geo = out[:, 0], out[:, 1:]
+        h_color = self.color_mlp(torch.cat([geo, spherical_harmonics(d, self.config.direction_degree)], dim=-1))
+        return h_sigma, h_color
+
+    def density_hidden(self, x: torch.Tensor) -> torch.Tensor:
+        """h_sigma only (no colour branch): used by the occupancy-grid update."""
+        return self.density_mlp(self.encoding(x))[:, 0]
+
+    def background_hidden(self, d: torch.Tensor) -> torch.Tensor:
+        if self.background_head is not None:
+            return self.background_head(spherical_harmonics(d, self.config.direction_degree))
+        # A large pre-sigmoid logit decodes to (almost exactly) 1 or 0 for the constant backgrounds.
+        value = 30.0 if self.config.background == "white" else -30.0
+        return torch.full((d.shape[0], 3), value, dtype=d.dtype, device=d.device)
+
+    # The rendering interface shared with DualField (see dualnerf.rendering).
+    def query(self, x, d, blend=None, retreat: float = 1.0):
+        _reject_blend(blend)
+        return self(x, d)
+
+    def query_density(self, x, blend=None, retreat: float = 1.0):
+        _reject_blend(blend)
+        return self.density_hidden(x)
+
+    def query_background(self, d, blend=None, retreat: float = 1.0):
+        _reject_blend(blend)
+        return self.background_hidden(d)
+
+    def occupancy_for(self, blend=None) -> OccupancyGrid:
+        _reject_blend(blend)
+        return self.occupancy
+
+
+def _reject_blend(blend) -> None:
+    if blend is not None:
+        raise ValueError("blend weights were given but the model is a single RadianceField (static field or "
+                         "the Instruct-NeRF2NeRF single-field baseline); pass blend=None, or build a DualField "
+                         "with dualnerf.dual_field.make_edit_model(static_field, 'dual')")

@@ -1,0 +1,60 @@
+"""Occupancy grid for empty-space skipping: a coarse voxel mask over [-1,1]^3 of where density lives.
+
+API:
+    OccupancyGrid(resolution: int) nn.Module with buffers `density` (R,R,R) and `mask` (R,R,R) bool
+        occupied(x: (M,3)) -> (M,) bool
+        update(density_fn, generator, sigma_threshold, decay=0.95, chunk=65536) -> None
+        fraction() -> float       share of occupied cells
+
+Rendering evaluates the field only at samples whose cell is occupied, so after a few updates most
+evaluated samples lie near surfaces. The mask starts all-true (nothing is known yet). An update samples
+one jittered point per cell (from the caller's seeded generator), keeps a decayed running maximum of
+the density (a surface seen once is not forgotten at the next noisy estimate), thresholds it, and dilates
+the mask by one cell so surfaces straddling cell borders are not cut.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+class OccupancyGrid(nn.Module):
+    def __init__(self, resolution: int):
+        super().__init__()
+        self.resolution = int(resolution)
+        r = self.resolution
+        self.register_buffer("density", torch.zeros(r, r, r))
+        self.register_buffer("mask", torch.ones(r, r, r, dtype=torch.bool))
+
+    def cell_index(self, x: torch.Tensor) -> torch.Tensor:
+        """Flat cell index of points in [-1,1]^3 (points outside are clamped to the border cells)."""
+        r = self.resolution
+        ijk = ((x + 1.0) * (0.5 * r)).floor().long().clamp(0, r - 1)
+        return (ijk[..., 0] * r + ijk[..., 1]) * r + ijk[..., 2]
+
+    def occupied(self, x: torch.Tensor) -> torch.Tensor:
+        return self.mask.reshape(-1)[self.cell_index(x)]
+
+    def fraction(self) -> float:
+        return float(self.mask.float().mean())
+
+    @torch.no_grad()
+    def update(self, density_fn: Callable[[torch.Tensor], torch.Tensor], generator: torch.Generator,
+               sigma_threshold: float, decay: float = 0.95, chunk: int = 65536) -> None:
+        r = self.resolution
+        device = self.density.device
+        # Cell ids in the same flat order as cell_index(): i (x) slowest, k (z) fastest.
+        ar = torch.arange(r, dtype=torch.float32)
+        ii, jj, kk = torch.meshgrid(ar, ar, ar, indexing="ij")
+        corner = torch.stack([ii, jj, kk], dim=-1).reshape(-1, 3)
+        jitter = torch.rand(corner.shape, generator=generator)          # CPU draw: same on any device
+        points = ((corner + jitter) * (2.0 / r) - 1.0).to(device)
+        sigma = torch.cat([density_fn(points[s:s + chunk]) for s in range(0, len(points), chunk)])
+        self.density.copy_(torch.maximum(self.density * decay, sigma.reshape(r, r, r).float()))
+        # Never threshold above the mean so a still-faint early field keeps its most likely cells.
+        threshold = min(float(sigma_threshold), float(self.density.mean()))
+        mask = (self.density > threshold).float()[None, None]
+        self.mask.copy_(F.max_pool3d(mask, kernel_size=3, stride=1, padding=1)[0, 0] > 0)

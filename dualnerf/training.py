@@ -1,0 +1,153 @@
+"""Ray-batch training of a radiance field (static fit, dual-field or single-field editing).
+
+API:
+    TrainConfig(rays_per_batch=1024, learning_rate=1e-2, ...)       frozen dataclass
+    RayTrainer(model, images: (N,H,W,3) float tensor in [0,1], cameras: Cameras, config: TrainConfig,
+               generator: torch.Generator (CPU), train_indices: sequence[int] | None = None)
+        .images                       mutable: the editing loop may overwrite trainer.images[i] in place
+        .step(step: int, blend=None, view_weights=None) -> dict(loss, mse, psnr, samples, occupancy)
+        .state_dict() / .load_state_dict(state)   model + optimiser + occupancy grid + generator state
+    rgb_loss(pred (R,3), target (R,3), ray_weights (R,) | None) -> scalar
+    normalised_view_weights(scores (N,), train_indices) -> (N,)  S_i / mean(S over training views)
+
+One `step` draws `rays_per_batch` random (training view, pixel) pairs from the seeded CPU generator,
+renders them with jittered samples, and takes one Adam step on the parameters that require gradients
+(so a DualField trains only f_D). Every `occupancy_every` steps (after `occupancy_warmup`) it first
+refreshes the occupancy grid of the model being trained (the fused one for a DualField with `blend`).
+Everything random comes from `generator`, so equal seeds give equal runs, and a resumed trainer
+(load_state_dict) continues exactly as an uninterrupted one. The images are not part of the state:
+the editing loop checkpoints its updated dataset itself.
+
+LPIPS (used by the paper's editing stage) is not available: no weights exist on this machine and no
+LPIPS network is implemented here; training uses the RGB loss only (the fit stage logs this).
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from dualnerf.cameras import Cameras, pixel_rays
+from dualnerf.fields import decode_density
+from dualnerf.rendering import render_rays
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    rays_per_batch: int = 1024
+    learning_rate: float = 1e-2
+    beta1: float = 0.9
+    beta2: float = 0.99
+    eps: float = 1e-15              # tiny eps: grid cells see rare, small gradients (as in hash-grid NeRFs)
+    occupancy_every: int = 16
+    occupancy_warmup: int = 32
+    occupancy_decay: float = 0.95
+    occupancy_alpha: float = 0.01   # a cell is empty when one sample step there would be this transparent
+
+
+class TrainingInputError(ValueError):
+    """Images/cameras/weights that do not fit together; the message says which and how."""
+
+
+def rgb_loss(pred: torch.Tensor, target: torch.Tensor, ray_weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Eq. 3 (eq. 9 with per-ray weights), averaged instead of summed: mean_r w_r * mean_c (C^ - C)^2."""
+    per_ray = ((pred - target) ** 2).mean(dim=-1)
+    if ray_weights is not None:
+        per_ray = per_ray * ray_weights
+    return per_ray.mean()
+
+
+def normalised_view_weights(scores: torch.Tensor, train_indices: Sequence[int]) -> torch.Tensor:
+    """Eq. 9's S_i / mean(S): consistency scores normalised by their mean over the training views."""
+    scores = torch.as_tensor(scores, dtype=torch.float32)
+    mean = scores[torch.as_tensor(list(train_indices))].mean()
+    if not torch.isfinite(scores).all() or float(mean) <= 0:
+        raise TrainingInputError(f"view_weights must be finite with a positive mean over the training views, "
+                                 f"got mean {float(mean)}; check the consistency scores passed to RayTrainer.step")
+    return scores / mean
+
+
+def _adam(params, config: TrainConfig) -> torch.optim.Adam:
+    kwargs = dict(lr=config.learning_rate, betas=(config.beta1, config.beta2), eps=config.eps)
+    try:
+        return torch.optim.Adam(params, fused=True, **kwargs)
+    except (RuntimeError, TypeError):       # fused kernels are missing for some device/dtype combinations
+        return torch.optim.Adam(params, **kwargs)
+
+
+class RayTrainer:
+    def __init__(self, model, images: torch.Tensor, cameras: Cameras, config: TrainConfig,
+                 generator: torch.Generator, train_indices: Sequence[int] | None = None):
+        if images.ndim != 4 or images.shape[-1] != 3 or not images.is_floating_point():
+            raise TrainingInputError(f"RayTrainer: images must be an (N,H,W,3) float tensor in [0,1], "
+                                     f"got {tuple(images.shape)} {images.dtype}")
+        if images.shape[0] != len(cameras) or images.shape[1:3] != (cameras.height, cameras.width):
+            raise TrainingInputError(f"RayTrainer: {images.shape[0]} images of {tuple(images.shape[1:3])} do not "
+                                     f"match {len(cameras)} cameras of {(cameras.height, cameras.width)}")
+        self.model = model
+        self.device = next(model.parameters()).device
+        self.images = images
+        self.cameras = cameras.to(self.device)
+        self.config = config
+        self.generator = generator
+        indices = range(len(cameras)) if train_indices is None else train_indices
+        self.train_indices = torch.as_tensor(list(indices), dtype=torch.long)
+        if len(self.train_indices) == 0:
+            raise TrainingInputError("RayTrainer: no training views (every frame is held out)")
+        params = [p for p in model.parameters() if p.requires_grad]
+        if not params:
+            raise TrainingInputError("RayTrainer: the model has no trainable parameters")
+        self.optimizer = _adam(params, config)
+        # Typical sample spacing: the cube diagonal split into samples_per_ray bins.
+        spacing = 2.0 * math.sqrt(3.0) / model.config.samples_per_ray
+        self.sigma_threshold = -math.log(1.0 - config.occupancy_alpha) / spacing
+
+    def update_occupancy(self, blend=None) -> None:
+        def density(x):
+            return decode_density(self.model.query_density(x, blend=blend))
+        self.model.occupancy_for(blend).update(density, self.generator, self.sigma_threshold,
+                                               decay=self.config.occupancy_decay)
+
+    def sample_batch(self):
+        n = self.config.rays_per_batch
+        g = self.generator
+        pick = torch.randint(len(self.train_indices), (n,), generator=g)
+        views = self.train_indices[pick]
+        u = torch.randint(self.cameras.width, (n,), generator=g)
+        v = torch.randint(self.cameras.height, (n,), generator=g)
+        return views, u, v
+
+    def step(self, step: int, blend=None, view_weights=None) -> dict:
+        cfg = self.config
+        if step >= cfg.occupancy_warmup and step % cfg.occupancy_every == 0:
+            self.update_occupancy(blend)
+        views, u, v = self.sample_batch()
+        target = self.images[views, v, u].to(self.device, torch.float32)
+        views_d, u_d, v_d = views.to(self.device), u.to(self.device), v.to(self.device)
+        cams = self.cameras
+        origins, dirs = pixel_rays(cams.c2w[views_d], cams.intrinsics[views_d], u_d, v_d)
+        result = render_rays(self.model, origins, dirs, cams.near[views_d], cams.far[views_d],
+                             blend=blend, generator=self.generator)
+        ray_weights = None
+        if view_weights is not None:
+            ray_weights = normalised_view_weights(view_weights, self.train_indices.tolist()).to(self.device)[views_d]
+        loss = rgb_loss(result["color"], target, ray_weights)
+        self.optimizer.zero_grad(set_to_none=True)
+        if loss.requires_grad:
+            loss.backward()
+            self.optimizer.step()
+        mse = float(((result["color"].detach() - target) ** 2).mean())
+        return {"loss": float(loss.detach()), "mse": mse, "psnr": -10.0 * math.log10(max(mse, 1e-12)),
+                "samples": result["evaluated"],
+                "occupancy": self.model.occupancy_for(blend).fraction()}
+
+    def state_dict(self) -> dict:
+        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.generator.set_state(state["generator"])
