@@ -1,0 +1,278 @@
+"""Stage "edit": Iterative Dataset Update from the fitted static field f_S, with the DualNeRF toggles
+dual_field (DF), annealing (SA) and consistency (CCI). The loop itself is `dualnerf.idu`.
+
+Inputs: "dataset" (preprocess result; on procedural scenes it carries scene.toml and gt/edits/, which the
+InstructPix2Pix emulator and the proxy encoder need) and "fit" (its model/ is f_S).
+
+Outputs:
+    model/               the edited model (dualnerf.model.save_model; a dual field carries its final blend)
+    edited/<stem>.png    the final updated training images (views never updated keep their original)
+    updates.jsonl        one line per view update: iteration, view, name, temperature T, gamma,
+                         acceptance_probability, accepted, render_retreat, score S, weight, editor_seed,
+                         editor details (the emulator's noise level, failure flag, ...)
+    curves.json          per iteration: loss, psnr, blend_density, blend_color, temperature,
+                         cci_weight_min/max; per update: the same fields as updates.jsonl (columns);
+                         acceptance_rate; cci: per update the scores and weights of every training view
+    curves.png           the curves plotted
+    edit.json            toggles, instruction, CCI text, editor and encoder identity (simulator flags)
+
+Presets. The paper (GPU, ~512 px images): iterations=15000, edit_rate=10, edit_count=1,
+rays_per_batch=4096 (PAPER_PRESET; workflows can set these). The defaults below are a scaled CPU
+preset so that the campsite ablation (6 edit variants + evaluation) fits in ~25 min on 2 cores:
+300 iterations with 2 views updated every 10 iterations (60 view updates, i.e. every training view of
+tiny ~2.7 times, of campsite ~1.4 times) and 1024 rays per batch. The blend schedule keeps the paper's
+lambda = 0.005, so the blend weights reach 0.9 w_max by iteration 300. See the report for measured costs.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from pipeline.stage import Resources, Stage, StageContext
+
+PAPER_PRESET = {"iterations": 15000, "edit_rate": 10, "edit_count": 1, "rays_per_batch": 4096}
+CCI_TEXTS = ("instruction", "target_caption")
+
+
+class EditStageError(ValueError):
+    """An edit parameter or input that cannot be used; the message says what to change."""
+
+    user_error = True
+
+
+@dataclass(frozen=True)
+class EditParams:
+    dual_field: bool = True             # DF: frozen f_S + trainable f_D (off: single-field IN2N baseline)
+    annealing: bool = True              # SA: retreat renders with probability exp((gamma - 1) / T_t)
+    consistency: bool = True            # CCI: per-view loss weights S_i / mean(S)
+    instruction: str = ""               # default: the edit's instruction from the dataset's scene.toml
+    edit_id: str = ""                   # the scene edit (ground truth for the emulator and proxy encoder)
+    cci_text: str = "instruction"       # the text y of eq. 9: "instruction" (paper) or "target_caption"
+    editor: str = "synthetic"           # "synthetic" (InstructPix2Pix EMULATOR, a simulator) or "ip2p"
+    editor_model: str = ""              # ip2p: local diffusers folder or hub id (default timbrooks/instruct-pix2pix)
+    encoder: str = "proxy"              # "proxy" (weight-free, NOT CLIP) or "clip"
+    encoder_model: str = ""             # clip: folder from `dualnerf models export-clip`
+    iterations: int = 300               # scaled CPU preset (paper: 15000)
+    edit_rate: int = 10                 # iterations between dataset updates (IN2N: 10)
+    edit_count: int = 2                 # views per dataset update (IN2N: 1)
+    rays_per_batch: int = 1024          # (paper scale: 4096)
+    lr: float = 1e-2                    # f_D's is lr / w_max_color when dual_lr_scale (see dualnerf.idu)
+    dual_lr_scale: bool = True
+    w_max_density: float = 0.1          # eq. 6 upper bounds (paper: 0.1)
+    w_max_color: float = 0.1
+    blend_rate: float = 0.005           # eq. 6 lambda (paper: 0.005)
+    T0: float = 1.0                     # eq. 8 initial temperature (paper: 1)
+    seed: int = 0
+    device: str = "cpu"
+    num_threads: int = 0                # non-semantic; 0: the threads the engine grants
+    checkpoint_every_rounds: int = 5    # non-semantic: resume is exact from any round
+
+
+class EditStage(Stage):
+    name = "edit"
+    version = "1"
+    Params = EditParams
+    upstream = ("dataset", "fit")
+    resources = Resources(cpus=2, gpus=0, memory_gb=3)
+    nonsemantic_params = frozenset({"num_threads", "checkpoint_every_rounds"})
+    packages = ("torch", "numpy", "onnxruntime", "diffusers", "transformers")
+
+    def run(self, ctx: StageContext) -> None:
+        import torch
+
+        from dualnerf.annealing import AnnealingConfig
+        from dualnerf.dataset import load_dataset
+        from dualnerf.dual_field import BlendSchedule
+        from dualnerf.idu import IDUConfig, IterativeDatasetUpdate
+        from dualnerf.model import load_model, save_model
+
+        p = ctx.params
+        _check_params(p, torch)
+        torch.set_num_threads(max(1, p.num_threads or ctx.threads))
+        data_dir = Path(ctx.inputs["dataset"])
+        dataset = load_dataset(data_dir)
+        static_field = load_model(Path(ctx.inputs["fit"]) / "model", "cpu")
+        spec = _scene_edit(data_dir, p)
+        instruction = p.instruction or (spec.instruction if spec else "")
+        if not instruction:
+            raise EditStageError(f"edit: no instruction; set the edit parameter 'instruction' (the dataset "
+                                 f"{data_dir} has no scene.toml edit '{p.edit_id}' to take it from).")
+        if p.cci_text == "target_caption" and spec is None:
+            raise EditStageError(f"edit: cci_text 'target_caption' needs the edit's captions from "
+                                 f"{data_dir / 'scene.toml'} (edit_id '{p.edit_id}'); use cci_text 'instruction'.")
+        cci_text = instruction if p.cci_text == "instruction" else spec.target_caption
+        train = dataset.indices("train")
+        editor = _build_editor(p, data_dir, dataset, train, instruction)
+        encoder = _build_encoder(p, data_dir, dataset, spec)
+        config = IDUConfig(dual_field=p.dual_field, annealing=p.annealing, consistency=p.consistency,
+                           iterations=p.iterations, edit_rate=p.edit_rate, edit_count=p.edit_count,
+                           rays_per_batch=p.rays_per_batch, learning_rate=p.lr, dual_lr_scale=p.dual_lr_scale,
+                           blend=BlendSchedule(p.w_max_density, p.w_max_color, p.blend_rate),
+                           annealing_config=AnnealingConfig(p.T0), seed=p.seed)
+        idu = IterativeDatasetUpdate(config, static_field, dataset, editor, instruction, encoder=encoder,
+                                     cci_text=cci_text, device=p.device)
+        editor_identity = editor.identity
+        encoder_identity = None if encoder is None else encoder.identity
+        ctx.record(editor=editor_identity, editor_is_simulator=bool(editor_identity.get("is_simulator")),
+                   encoder=encoder_identity, seeds={"seed": p.seed, "trainer_generator": p.seed,
+                                                    "annealing_rng": f"SeedSequence([{p.seed}, 0x5A])",
+                                                    "editor_seed": "SeedSequence([seed, iteration, slot])"},
+                   instruction=instruction, cci_text=cci_text, lpips="not used (no weights available)")
+        if editor_identity.get("is_simulator"):
+            ctx.log.info("editor: InstructPix2PixEmulator (a SIMULATOR of InstructPix2Pix, from the scene's "
+                         "ground-truth edit)")
+        if encoder_identity and encoder_identity.get("kind") == "proxy":
+            ctx.log.info("CCI encoder: proxy colour/structure statistics (NOT CLIP); scores are proxy scores")
+
+        resume = ctx.latest_checkpoint()
+        if resume is not None:
+            idu.load_state(resume[1])
+            ctx.log.info(f"resumed from the checkpoint at iteration {resume[0]}")
+        round_length = p.edit_rate * p.checkpoint_every_rounds
+
+        def on_round_end(iteration: int) -> None:
+            if iteration % round_length == 0:
+                with ctx.checkpoint(iteration) as folder:
+                    idu.save_state(folder)
+
+        started, first = time.perf_counter(), idu.iteration
+        with ctx.progress(p.iterations, "edit (IDU)", initial=idu.iteration) as bar:
+            idu.run(on_round_end=on_round_end, progress=bar.update)
+        elapsed = time.perf_counter() - started
+        done = idu.iteration - first
+        ctx.record(seconds_per_iteration=(elapsed / done) if done else None, iterations_run=done)
+
+        out = ctx.out_dir
+        model = idu.final_model()
+        save_model(out / "model", model, extra={"stage": "edit", "toggles": {
+            "dual_field": p.dual_field, "annealing": p.annealing, "consistency": p.consistency},
+            "instruction": instruction})
+        _write_images(out / "edited", [dataset.names[i] for i in train], idu.images[train])
+        with open(out / "updates.jsonl", "w") as handle:
+            for entry in idu.updates:
+                handle.write(json.dumps(entry) + "\n")
+        curves = idu.curves_json()
+        (out / "curves.json").write_text(json.dumps(curves))
+        plot_curves(curves, out / "curves.png")
+        (out / "edit.json").write_text(json.dumps({
+            "toggles": {"dual_field": p.dual_field, "annealing": p.annealing, "consistency": p.consistency},
+            "instruction": instruction, "cci_text": cci_text, "editor": editor_identity,
+            "editor_is_simulator": bool(editor_identity.get("is_simulator")), "encoder": encoder_identity,
+            "params": asdict(p), "train_views": [dataset.names[i] for i in train],
+            "acceptance_rate": curves["acceptance_rate"], "view_updates": len(idu.updates),
+            "final_blend": None if not p.dual_field else list(model.render_blend)}, indent=1))
+
+
+def _check_params(p: EditParams, torch) -> None:
+    from dualnerf.editors import EDITOR_KINDS
+    from dualnerf.encoders import ENCODER_KINDS
+
+    if p.editor not in EDITOR_KINDS:
+        raise EditStageError(f"edit: unknown editor '{p.editor}'; choose one of {', '.join(EDITOR_KINDS)}.")
+    if p.encoder not in ENCODER_KINDS:
+        raise EditStageError(f"edit: unknown encoder '{p.encoder}'; choose one of {', '.join(ENCODER_KINDS)}.")
+    if p.cci_text not in CCI_TEXTS:
+        raise EditStageError(f"edit: cci_text must be one of {', '.join(CCI_TEXTS)}, got '{p.cci_text}'.")
+    if p.checkpoint_every_rounds < 1:
+        raise EditStageError(f"edit: checkpoint_every_rounds must be >= 1, got {p.checkpoint_every_rounds}.")
+    if p.device.startswith("cuda") and not torch.cuda.is_available():
+        raise EditStageError(f"edit: device '{p.device}' was requested but torch sees no CUDA device; "
+                             f"use device='cpu'.")
+
+
+def _scene_edit(data_dir: Path, p: EditParams):
+    """The scene.toml edit `edit_id` of the dataset, or None for data without an edit vocabulary."""
+    from dualnerf.scenes.spec import load_scene_spec
+
+    if not (data_dir / "scene.toml").is_file():
+        if p.edit_id:
+            raise EditStageError(f"edit: edit_id '{p.edit_id}' was given but {data_dir} has no scene.toml; "
+                                 f"leave edit_id empty and set instruction (with editor 'ip2p').")
+        return None
+    spec = load_scene_spec(data_dir)
+    if not p.edit_id:
+        return None
+    return spec.edit(p.edit_id)
+
+
+def _build_editor(p: EditParams, data_dir: Path, dataset, train, instruction: str):
+    from dualnerf.editors import load_editor
+
+    if p.editor == "synthetic" and not p.edit_id:
+        raise EditStageError("edit: editor 'synthetic' (the InstructPix2Pix emulator) needs edit_id, the scene "
+                             "edit whose ground truth it emulates; or use editor 'ip2p'.")
+    return load_editor(p.editor, instruction=instruction, model=p.editor_model or None, device=p.device,
+                       scene_folder=data_dir, edit_id=p.edit_id, names=[dataset.names[i] for i in train],
+                       originals=dataset.images[train])
+
+
+def _build_encoder(p: EditParams, data_dir: Path, dataset, spec):
+    """The CCI encoder. The proxy needs the scene's ground-truth edit to define its captions; without it,
+    CCI off runs without scores and CCI on is an error."""
+    from dualnerf.encoders import load_encoder
+
+    if p.encoder == "clip":
+        return load_encoder("clip", p.encoder_model or None)
+    if spec is None or not (data_dir / "gt" / "edits" / p.edit_id).is_dir():
+        if p.consistency:
+            raise EditStageError(f"edit: consistency (CCI) with encoder 'proxy' needs a scene edit with ground "
+                                 f"truth in {data_dir / 'gt' / 'edits'} (edit_id); for other data use encoder "
+                                 f"'clip' with encoder_model (see `dualnerf models export-clip`).")
+        return None
+    from dualnerf.encoders.vocabulary import proxy_vocabulary
+
+    return load_encoder("proxy", vocabulary=proxy_vocabulary(data_dir, p.edit_id, dataset.names, dataset.images))
+
+
+def _write_images(folder: Path, names, images) -> None:
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, image in zip(names, images):
+        path = folder / f"{Path(name).stem}.png"
+        if not cv2.imwrite(str(path), image[..., ::-1]):
+            raise OSError(f"could not write {path}")
+
+
+def plot_curves(curves: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    it = curves["iteration"]
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7))
+    ax = axes[0, 0]
+    ax.plot(it, curves["loss"], lw=0.8)
+    ax.set_yscale("log")
+    ax.set_title("training loss (RGB, CCI-weighted when on)")
+    ax = axes[0, 1]
+    ax.plot(it, curves["blend_density"], label="w_density")
+    ax.plot(it, curves["blend_color"], "--", label="w_color")
+    ax.set_title("blend weights (eq. 6)")
+    ax.legend()
+    ax = axes[1, 0]
+    ax.plot(it, curves["temperature"], color="k", label="T_t (eq. 8)")
+    u = curves["updates"]
+    drawn = [(i, g, a) for i, g, a in zip(u["iteration"], u["gamma"], u["accepted"]) if g is not None]
+    if drawn:
+        ax.scatter([d[0] for d in drawn if d[2]], [d[1] for d in drawn if d[2]], s=10, c="tab:green",
+                   label="gamma, accepted")
+        ax.scatter([d[0] for d in drawn if not d[2]], [d[1] for d in drawn if not d[2]], s=10, c="tab:red",
+                   marker="x", label="gamma, rejected")
+    ax.set_title("simulated annealing")
+    ax.legend(fontsize=7)
+    ax = axes[1, 1]
+    for entry in curves["cci"]:
+        ax.scatter([entry["iteration"]] * len(entry["weights"]), entry["weights"], s=2, c="tab:blue")
+    if not curves["cci"]:
+        ax.text(0.5, 0.5, "no consistency scores", ha="center", transform=ax.transAxes)
+    on = curves["toggles"]["consistency"]
+    ax.set_title("CCI weights S_i / mean(S) per view" + ("" if on else " (CCI off: not applied)"))
+    for a in axes.flat:
+        a.set_xlabel("iteration")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
