@@ -1,0 +1,158 @@
+"""Volume rendering against closed-form cases, ray geometry, occupancy skipping, chunked rendering."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dualnerf.cameras import pixel_rays, view_rays
+from dualnerf.fields import FieldConfig, RadianceField
+from dualnerf.rendering import composite, ray_cube_bounds, render_rays, render_view
+
+DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA device")])]
+
+
+def constant_field(sigma: float, rgb, background: str = "black", samples: int = 64) -> RadianceField:
+    """A field with density `sigma` and colour `rgb` everywhere in the cube (all weights zero, biases set)."""
+    cfg = FieldConfig(grid_resolutions=(2,), grid_features=1, hidden_width=4, geo_features=1, direction_degree=2,
+                      background=background, samples_per_ray=samples, occupancy_resolution=4)
+    field = RadianceField(cfg)
+    with torch.no_grad():
+        for p in field.parameters():
+            p.zero_()
+        field.density_mlp[-1].bias[0] = math.log(sigma)
+        rgb = torch.tensor(rgb, dtype=torch.float32)
+        field.color_mlp[-1].bias.copy_(torch.log(rgb / (1 - rgb)))
+    return field
+
+
+def axis_ray(device="cpu"):
+    return torch.tensor([[0.0, 0.0, -3.0]], device=device), torch.tensor([[0.0, 0.0, 1.0]], device=device)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_constant_slab_matches_beer_lambert(device):
+    sigma, rgb = 1.7, (0.2, 0.5, 0.9)
+    field = constant_field(sigma, rgb, background="white").to(device)
+    origins, dirs = axis_ray(device)
+    # near/far cut a slab of length 1 out of the cube (z in [-0.5, 0.5]).
+    out = render_rays(field, origins, dirs, torch.tensor([2.5], device=device), torch.tensor([3.5], device=device))
+    transmittance = math.exp(-sigma * 1.0)
+    expected = torch.tensor(rgb) * (1 - transmittance) + 1.0 * transmittance
+    assert out["opacity"].item() == pytest.approx(1 - transmittance, abs=1e-5)
+    torch.testing.assert_close(out["color"][0].cpu(), expected, atol=1e-5, rtol=0)
+
+
+def test_slab_through_whole_cube_is_clipped_to_the_cube():
+    sigma = 0.3
+    field = constant_field(sigma, (0.5, 0.5, 0.5))
+    origins, dirs = axis_ray()
+    out = render_rays(field, origins, dirs, 0.0, 100.0)
+    # Density exists only inside [-1,1]^3: path length 2.
+    assert out["opacity"].item() == pytest.approx(1 - math.exp(-2 * sigma), abs=1e-5)
+
+
+@pytest.mark.parametrize("background,value", [("white", 1.0), ("black", 0.0)])
+def test_empty_space_shows_background(background, value):
+    field = constant_field(1e-12, (0.3, 0.3, 0.3), background=background)
+    origins, dirs = axis_ray()
+    out = render_rays(field, origins, dirs, 0.0, 10.0)
+    assert out["opacity"].item() < 1e-9
+    torch.testing.assert_close(out["color"][0], torch.full((3,), value), atol=1e-6, rtol=0)
+
+
+def test_learned_background_for_rays_missing_the_cube():
+    field = RadianceField(FieldConfig(grid_resolutions=(4,), samples_per_ray=16), torch.Generator().manual_seed(1))
+    origins = torch.tensor([[0.0, 5.0, -3.0]])
+    dirs = torch.tensor([[0.0, 0.0, 1.0]])         # passes above the cube
+    out = render_rays(field, origins, dirs, 0.0, 10.0)
+    assert out["evaluated"] == 0 and out["opacity"].item() == 0.0
+    expected = torch.sigmoid(field.background_hidden(dirs))[0]
+    torch.testing.assert_close(out["color"][0], expected)
+
+
+def test_composite_weights_closed_form():
+    sigma = torch.tensor([[0.0, 2.0, 1.0, 0.5]])
+    delta = torch.tensor([[0.5, 0.25, 1.0, 2.0]])
+    tau = (sigma * delta)[0].tolist()
+    expected, acc = [], 0.0
+    for t in tau:
+        expected.append(math.exp(-acc) * (1 - math.exp(-t)))
+        acc += t
+    torch.testing.assert_close(composite(sigma, delta)[0], torch.tensor(expected))
+
+
+def test_ray_cube_bounds():
+    origins = torch.tensor([[0.0, 0.0, -3.0], [0.0, 0.0, 0.0], [5.0, 5.0, 5.0]])
+    dirs = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    t0, t1 = ray_cube_bounds(origins, dirs, torch.tensor([0.0, 0.0, 0.0]), torch.tensor([10.0, 0.5, 10.0]))
+    torch.testing.assert_close(t0[:2], torch.tensor([2.0, 0.0]))
+    torch.testing.assert_close(t1[:2], torch.tensor([4.0, 0.5]))
+    assert t1[2] <= t0[2]          # misses the cube
+
+
+def test_pixel_rays_follow_opencv_convention():
+    # Camera at (1,2,3); the rotation columns are the camera x, y, z axes in world coordinates.
+    rot = torch.tensor([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    c2w = torch.eye(4)
+    c2w[:3, :3] = rot
+    c2w[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
+    k = torch.tensor([100.0, 80.0, 49.5, 29.5])
+    origins, dirs = pixel_rays(c2w[None].repeat(3, 1, 1), k[None].repeat(3, 1),
+                               torch.tensor([49, 99, 49]), torch.tensor([29, 29, 59]))
+    torch.testing.assert_close(origins, torch.tensor([[1.0, 2.0, 3.0]] * 3))
+    torch.testing.assert_close(dirs[0], rot[:, 2])                       # principal ray = camera +z
+    right = (torch.tensor([50.0 / 100.0, 0.0, 1.0]) @ rot.T)
+    torch.testing.assert_close(dirs[1], right / right.norm())             # u to the right = camera +x
+    down = (torch.tensor([0.0, 30.0 / 80.0, 1.0]) @ rot.T)
+    torch.testing.assert_close(dirs[2], down / down.norm())               # v down = camera +y
+    assert torch.allclose(dirs.norm(dim=-1), torch.ones(3))
+
+
+def test_view_rays_row_major():
+    o, d = view_rays(np.eye(4), np.array([10.0, 10.0, 2.0, 1.5]), 4, 3)
+    assert d.shape == (12, 3)
+    _, d_one = pixel_rays(torch.eye(4)[None], torch.tensor([[10.0, 10.0, 2.0, 1.5]]),
+                          torch.tensor([3]), torch.tensor([1]))
+    torch.testing.assert_close(d[1 * 4 + 3], d_one[0])
+
+
+def test_empty_occupancy_skips_all_samples_and_full_occupancy_matches_dense():
+    field = constant_field(0.8, (0.1, 0.7, 0.3), background="white")
+    origins, dirs = axis_ray()
+    dense = render_rays(field, origins, dirs, 0.0, 10.0)
+    assert dense["evaluated"] == field.config.samples_per_ray
+    field.occupancy.mask.zero_()
+    skipped = render_rays(field, origins, dirs, 0.0, 10.0)
+    assert skipped["evaluated"] == 0
+    torch.testing.assert_close(skipped["color"][0], torch.ones(3), atol=1e-6, rtol=0)
+
+
+def test_occupancy_update_finds_an_analytic_sphere():
+    from dualnerf.occupancy import OccupancyGrid
+
+    grid = OccupancyGrid(16)
+
+    def density(x):   # a dense ball of radius 0.4 at (0.3, 0, 0)
+        return torch.where((x - torch.tensor([0.3, 0.0, 0.0])).norm(dim=-1) < 0.4, 50.0, 0.0)
+
+    grid.update(density, torch.Generator().manual_seed(0), sigma_threshold=1.0, decay=0.95)
+    inside = torch.tensor([[0.3, 0.0, 0.0], [0.55, 0.1, 0.0]])
+    outside = torch.tensor([[-0.8, 0.0, 0.0], [0.3, 0.9, 0.9]])
+    assert grid.occupied(inside).all()
+    assert not grid.occupied(outside).any()
+    # Ball volume (4/3 pi 0.4^3 = 0.27) is ~3% of the cube; with dilation it stays well below a third.
+    assert 0.02 < grid.fraction() < 0.3
+
+
+def test_render_view_chunking_does_not_change_the_image():
+    field = RadianceField(FieldConfig(grid_resolutions=(8, 16), samples_per_ray=32),
+                          torch.Generator().manual_seed(3))
+    c2w = np.eye(4)
+    c2w[2, 3] = -2.5
+    k = np.array([12.0, 12.0, 6.0, 4.0])
+    a = render_view(field, c2w, k, 12, 8, 0.5, 5.0, chunk=7)
+    b = render_view(field, c2w, k, 12, 8, 0.5, 5.0, chunk=10_000)
+    assert a.shape == (8, 12, 3) and a.min() >= 0 and a.max() <= 1
+    torch.testing.assert_close(a, b, atol=1e-6, rtol=0)
