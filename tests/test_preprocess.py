@@ -302,3 +302,35 @@ def test_scene_and_preprocess_through_the_engine(tmp_path):
     assert (ds.width, ds.height) == (40, 30) and len(ds.names) == 4
     manifest = json.loads((result.results[prep] / "manifest.json").read_text())
     assert "seed" in json.dumps(manifest)
+
+
+def test_distorted_nerfstudio_images_are_undistorted_to_pinhole(tiny_scene, tmp_path):
+    """Distort pinhole views with a known OPENCV model; preprocess must give the pinhole views back."""
+    doc = json.loads((tiny_scene / "gt" / "transforms.json").read_text())
+    k = np.array([[doc["fl_x"], 0, doc["cx"] - 0.5], [0, doc["fl_y"], doc["cy"] - 0.5], [0, 0, 1]])
+    dist = np.array([-0.25, 0.05, 0.001, -0.001, 0.0])
+    w, h = doc["w"], doc["h"]
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    ideal = cv2.undistortPoints(np.stack([u, v], -1).reshape(-1, 1, 2), k, dist, P=k).reshape(h, w, 2)
+    folder = tmp_path / "distorted"
+    (folder / "images").mkdir(parents=True)
+    frames = doc["frames"][:6]
+    pinhole = []
+    for frame in frames:
+        name = Path(frame["file_path"]).name
+        image = cv2.imread(str(tiny_scene / "images" / name))
+        pinhole.append(image[..., ::-1])
+        distorted = cv2.remap(image, ideal[..., 0], ideal[..., 1], cv2.INTER_LINEAR)
+        cv2.imwrite(str(folder / "images" / name), distorted)
+        frame["file_path"] = f"images/{name}"
+    doc.update(frames=frames, camera_model="OPENCV", k1=dist[0], k2=dist[1], p1=dist[2], p2=dist[3])
+    doc.pop("ply_file_path")
+    (folder / "transforms.json").write_text(json.dumps(doc))
+    preprocess(folder, tmp_path / "ds", PreprocessConfig())
+    ds = load_dataset(tmp_path / "ds")
+    centre = (slice(12, h - 12), slice(12, w - 12))
+    for i in range(len(frames)):
+        undistorted_error = np.abs(ds.images[i][centre].astype(int) - pinhole[i][centre]).mean()
+        distorted = cv2.imread(str(folder / "images" / ds.names[i]))[..., ::-1]
+        distorted_error = np.abs(distorted[centre].astype(int) - pinhole[i][centre]).mean()
+        assert undistorted_error < 4.0 and distorted_error > 2 * undistorted_error

@@ -37,7 +37,8 @@ def near_far(c2w: np.ndarray, intrinsics: np.ndarray, sizes: np.ndarray, points:
     """Per-view depth bounds in normalised units.
 
     far is the distance to the farthest corner of the [-1, 1]^3 cube (nothing modelled lies beyond it);
-    near comes from the visible sparse points (0.8 x their 1st depth percentile) when there are enough,
+    near comes from the visible sparse points (0.6 x their 1st depth percentile: surfaces without
+    SfM points, such as the ground at the bottom of the image, can be nearer) when there are enough,
     else from the distance to the cube.
     """
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
@@ -47,7 +48,7 @@ def near_far(c2w: np.ndarray, intrinsics: np.ndarray, sizes: np.ndarray, points:
         far.append(float(np.max(np.linalg.norm(corners - centre, axis=1))))
         depth = _visible_depths(c2w[i], intrinsics[i], sizes[i], points) if points is not None else None
         if depth is not None and len(depth) >= 20:
-            near.append(max(MIN_NEAR, 0.8 * float(np.percentile(depth, 1.0))))
+            near.append(max(MIN_NEAR, 0.6 * float(np.percentile(depth, 1.0))))
         else:
             near.append(max(MIN_NEAR, float(np.linalg.norm(np.maximum(np.abs(centre) - 1.0, 0.0)))))
     near_arr, far_arr = np.array(near), np.array(far)
