@@ -97,8 +97,8 @@ class EditStage(Stage):
         spec = _scene_edit(data_dir, p)
         instruction = p.instruction or (spec.instruction if spec else "")
         if not instruction:
-            raise EditStageError(f"edit: no instruction; set the edit parameter 'instruction' (the dataset "
-                                 f"{data_dir} has no scene.toml edit '{p.edit_id}' to take it from).")
+            raise EditStageError(f"edit: no instruction; set the edit parameter 'instruction', or 'edit_id' to "
+                                 f"take it from a scene edit in {data_dir / 'scene.toml'}.")
         if p.cci_text == "target_caption" and spec is None:
             raise EditStageError(f"edit: cci_text 'target_caption' needs the edit's captions from "
                                  f"{data_dir / 'scene.toml'} (edit_id '{p.edit_id}'); use cci_text 'instruction'.")
