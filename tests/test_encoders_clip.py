@@ -136,3 +136,16 @@ def test_corrupt_or_missing_files_are_clear_errors(exported, tmp_path):
     manifest = json.loads((root / "onnx" / "manifest.json").read_text())
     assert set(manifest["files"]) == {"image_encoder.onnx", "text_encoder.onnx", "tokenizer.json",
                                       "preprocess.json"}
+
+
+def test_export_command_through_the_cli(tmp_path, capsys):
+    from stages.cli import main
+
+    build_tiny_clip_source(tmp_path / "hf", seed=1)
+    assert main(["models", "export-clip", "--from", str(tmp_path / "hf"), "--out", str(tmp_path / "m"),
+                 "--check"]) == 0
+    assert "check: max |onnx - torch|" in capsys.readouterr().out
+    assert load_encoder("clip", tmp_path / "m").identity["model"] == str(tmp_path / "hf")
+    # a bad source is a user error (exit 2, message naming what to pass)
+    assert main(["models", "export-clip", "--from", str(tmp_path / "nothing"), "--out", str(tmp_path / "n")]) == 2
+    assert "could not load a transformers CLIPModel" in capsys.readouterr().err

@@ -122,3 +122,24 @@ def export_clip(source: str, out_dir: Path, log=print) -> dict:
     log(f"exported CLIP '{source}' to {out_dir} (embedding dim {manifest['embedding_dim']}, "
         f"image {image_size}px, context {context_length} tokens)")
     return manifest
+
+
+def check_export(source: str, folder: Path) -> float:
+    """Max |ONNX - torch| over image and text embeddings of a few fixed inputs (both L2-normalised)."""
+    import numpy as np
+    import torch
+    from transformers import CLIPModel
+
+    from dualnerf.encoders.clip_onnx import ClipOnnxEncoder, preprocess_images
+
+    encoder = ClipOnnxEncoder(Path(folder))
+    model = CLIPModel.from_pretrained(source).eval()
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, size=(2, 64, 80, 3), dtype=np.uint8)
+    texts = ["a photo of a campsite", "make it look like it just snowed"]
+    ids, mask = encoder.tokenize(texts)
+    with torch.no_grad():
+        out = model(pixel_values=torch.from_numpy(preprocess_images(images, encoder.preprocess)),
+                    input_ids=torch.from_numpy(ids), attention_mask=torch.from_numpy(mask))
+    return float(max(np.abs(encoder.encode_images(images) - out.image_embeds.numpy()).max(),
+                     np.abs(encoder.encode_texts(texts) - out.text_embeds.numpy()).max()))
