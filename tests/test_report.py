@@ -49,10 +49,15 @@ def make_evaluate(folder: Path, values: dict, colour, *, encoder="proxy", editor
 
 
 def make_edit(folder: Path, scale: float):
+    """An edit result's curves.json in the edit stage's column layout."""
     folder.mkdir(parents=True)
     steps = list(range(0, 100, 10))
-    curves = {"loss": {"step": steps, "value": [scale / (1 + s) for s in steps]},
-              "blend_weight": {"step": steps, "value": [0.1 * np.tanh(0.005 * s) for s in steps]}}
+    curves = {"iteration": steps, "loss": [scale / (1 + s) for s in steps], "psnr": [20.0 + s / 10 for s in steps],
+              "blend_density": [0.1 * np.tanh(0.005 * s) for s in steps],
+              "blend_color": [0.1 * np.tanh(0.005 * s) for s in steps],
+              "temperature": [1 / np.log10(10 + s) for s in steps],
+              "cci_weight_min": [None] * len(steps), "cci_weight_max": [None] * len(steps),
+              "updates": {"iteration": [0, 0, 10, 20, 30], "accepted": [None, True, False, True, True]}}
     (folder / "curves.json").write_text(json.dumps(curves))
     return folder
 
@@ -87,7 +92,8 @@ def test_report_contains_every_row_and_file(grid, tmp_path):
     assert index == out / "index.html"
     text = index.read_text()
     for name in ("table.md", "table.csv", "table.json", "grid.png", "path_strip.png", "curves/loss.png",
-                 "curves/blend_weight.png", "report.json"):
+                 "curves/psnr.png", "curves/blend_weights.png", "curves/sa_temperature.png",
+                 "curves/sa_acceptance_rate.png", "report.json"):
         assert (out / name).is_file(), name
     assert len(list((out / "videos").glob("*.mp4"))) == 5
     # Every relative reference in the HTML exists; nothing external.
@@ -99,6 +105,17 @@ def test_report_contains_every_row_and_file(grid, tmp_path):
     # Simulators are named in the title block.
     assert "InstructPix2Pix EMULATOR" in text and "NOT CLIP" in text
     assert "Original Scene" in text and "baseline" in text and "DF+SA+CCI" in text
+    # CCI weights are all null in these runs (CCI off): no empty figure for them.
+    assert not (out / "curves" / "cci_weights.png").exists()
+
+
+def test_curves_follow_the_edit_stage_columns(tmp_path):
+    curves = R.load_curves(make_edit(tmp_path / "edit", 1.0))
+    steps, loss = curves["loss"]
+    assert steps == list(range(0, 100, 10)) and loss[0] == 1.0
+    assert "cci_weight_min" not in curves
+    # Acceptances: updates with a drawn retreat are accepted, rejected, accepted, accepted.
+    assert curves["sa_acceptance_rate"] == ([0, 10, 20, 30], [1.0, 0.5, 2 / 3, 0.75])
 
 
 def test_table_statistics_and_best_marks(grid, tmp_path):
