@@ -151,8 +151,7 @@ class EditStage(Stage):
             "instruction": instruction})
         _write_images(out / "edited", [dataset.names[i] for i in train], idu.images[train])
         with open(out / "updates.jsonl", "w") as handle:
-            for entry in idu.updates:
-                handle.write(json.dumps(entry) + "\n")
+            handle.writelines(json.dumps(entry) + "\n" for entry in idu.updates)
         curves = idu.curves_json()
         (out / "curves.json").write_text(json.dumps(curves))
         plot_curves(curves, out / "curves.png")

@@ -1,10 +1,16 @@
+import itertools
 import math
 
 import numpy as np
 import pytest
 
-from dualnerf.annealing import (AnnealingConfig, acceptance_probability, annealing_temperature,
-                                draw_retreat, expected_acceptance_rate)
+from dualnerf.annealing import (
+    AnnealingConfig,
+    acceptance_probability,
+    annealing_temperature,
+    draw_retreat,
+    expected_acceptance_rate,
+)
 
 
 def test_temperature_matches_eq8():
@@ -12,7 +18,7 @@ def test_temperature_matches_eq8():
     assert annealing_temperature(90, 1.0) == pytest.approx(0.5)         # lg(100) = 2
     assert annealing_temperature(990, 2.0) == pytest.approx(2.0 / 3.0)  # lg(1000) = 3
     temps = [annealing_temperature(t) for t in range(0, 15000, 500)]
-    assert all(a > b for a, b in zip(temps, temps[1:]))
+    assert all(a > b for a, b in itertools.pairwise(temps))
 
 
 def test_acceptance_probability_matches_eq7():

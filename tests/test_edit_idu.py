@@ -172,7 +172,7 @@ def test_consistency_off_is_uniform_and_on_downweights_failures(small):
 
 
 def test_resume_from_saved_state_is_exact(small, tmp_path):
-    kwargs = dict(iterations=30, edit_rate=5, edit_count=2)
+    kwargs = {"iterations": 30, "edit_rate": 5, "edit_count": 2}
     full = make_idu(small, **kwargs)
     full.run()
     first = make_idu(small, **kwargs)

@@ -1,6 +1,5 @@
 """The edit stage through the engine's StepContext: outputs, records, input folders untouched, clear
 errors, and SIGKILL + rerun giving the same result as an uninterrupted run."""
-import dataclasses
 import hashlib
 import json
 import logging
@@ -17,8 +16,8 @@ import torch
 
 from tests.test_edit_idu import SNOW, build_small_edit_inputs
 
-FAST = dict(edit_id=SNOW, iterations=20, edit_rate=5, edit_count=2, rays_per_batch=256, seed=3,
-            checkpoint_every_rounds=1, num_threads=1)
+FAST = {"edit_id": SNOW, "iterations": 20, "edit_rate": 5, "edit_count": 2, "rays_per_batch": 256, "seed": 3,
+            "checkpoint_every_rounds": 1, "num_threads": 1}
 
 
 def run_stage(data_dir, fit_dir, root, **params):
@@ -78,13 +77,13 @@ def test_stage_outputs_records_and_untouched_inputs(small, tmp_path):
 
 
 @pytest.mark.parametrize("params, message", [
-    (dict(editor="dalle"), "unknown editor 'dalle'"),
-    (dict(cci_text="caption"), "cci_text must be one of"),
-    (dict(edit_id=""), "no instruction; set"),
-    (dict(edit_id="", instruction="Make it look like it just snowed"), "needs edit_id"),
-    (dict(encoder="clip", encoder_model=""), "needs a model folder"),
-    (dict(instruction="make it pink"), "can only emulate edit 'snow'"),
-    (dict(device="cuda:0"), "no CUDA device") if not torch.cuda.is_available() else (dict(), None),
+    ({"editor": "dalle"}, "unknown editor 'dalle'"),
+    ({"cci_text": "caption"}, "cci_text must be one of"),
+    ({"edit_id": ""}, "no instruction; set"),
+    ({"edit_id": "", "instruction": "Make it look like it just snowed"}, "needs edit_id"),
+    ({"encoder": "clip", "encoder_model": ""}, "needs a model folder"),
+    ({"instruction": "make it pink"}, "can only emulate edit 'snow'"),
+    ({"device": "cuda:0"}, "no CUDA device") if not torch.cuda.is_available() else ({}, None),
 ])
 def test_bad_parameters_are_clear_errors(small, tmp_path, params, message):
     if message is None:

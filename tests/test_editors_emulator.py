@@ -6,8 +6,8 @@ from dualnerf.editors import EditorError
 from dualnerf.editors.emulator import EmulatedView, EmulatorConfig, InstructPix2PixEmulator
 
 INSTRUCTION = "make it snowy"
-QUIET = dict(noise_range=(1.0, 1.0), strength_jitter=0.0, tint_jitter=0.0, spatial_jitter=0.0,
-             background_drift=0.0, background_blur=0.0, failure_rate=0.0, mask_feather=0.0)
+QUIET = {"noise_range": (1.0, 1.0), "strength_jitter": 0.0, "tint_jitter": 0.0, "spatial_jitter": 0.0,
+             "background_drift": 0.0, "background_blur": 0.0, "failure_rate": 0.0, "mask_feather": 0.0}
 
 
 def _view(size=32, seed=0):

@@ -3,8 +3,13 @@ import numpy as np
 import pytest
 
 from dualnerf.editors import EditorError, load_editor
-from dualnerf.editors.ip2p import (InstructPix2PixConfig, InstructPix2PixEditor, ddim_sample, ddim_timesteps,
-                                   guided_noise)
+from dualnerf.editors.ip2p import (
+    InstructPix2PixConfig,
+    InstructPix2PixEditor,
+    ddim_sample,
+    ddim_timesteps,
+    guided_noise,
+)
 from tests.test_encoders_clip import build_tiny_tokenizer
 
 

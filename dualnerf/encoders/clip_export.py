@@ -13,8 +13,16 @@ import warnings
 from pathlib import Path
 
 from dualnerf.encoders.base import EncoderError
-from dualnerf.encoders.clip_onnx import (CLIP_FORMAT, CLIP_FORMAT_VERSION, IMAGE_ONNX, MANIFEST_FILE,
-                                         PREPROCESS_FILE, TEXT_ONNX, TOKENIZER_FILE, file_sha256)
+from dualnerf.encoders.clip_onnx import (
+    CLIP_FORMAT,
+    CLIP_FORMAT_VERSION,
+    IMAGE_ONNX,
+    MANIFEST_FILE,
+    PREPROCESS_FILE,
+    TEXT_ONNX,
+    TOKENIZER_FILE,
+    file_sha256,
+)
 
 # OpenAI CLIP's published normalisation, used when the source has no preprocessor_config.json.
 OPENAI_CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
