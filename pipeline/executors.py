@@ -67,8 +67,11 @@ def _worker_init(threads: int) -> None:
     # Before any stage imports torch/numpy: keep BLAS pools to this job's share of the cores.
     for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[name] = str(threads)
-    # SIGTERM from the runner's shutdown unwinds like Ctrl-C, so leases are released.
-    signal.signal(signal.SIGTERM, signal.default_int_handler)
+
+
+# After Ctrl-C, how long workers get to unwind from the terminal's own SIGINT before the runner sends
+# them one (needed when only the runner was signalled, e.g. `kill -INT`).
+INTERRUPT_GRACE_S = 1.0
 
 
 class ProcessPoolExecutor(Executor):
@@ -112,9 +115,16 @@ class ProcessPoolExecutor(Executor):
 
     def shutdown(self, interrupted: bool = False) -> None:
         if interrupted:
-            for process in list(getattr(self._pool, "_processes", {}).values()):
-                if process.is_alive():
-                    os.kill(process.pid, signal.SIGTERM)
+            import concurrent.futures
+
+            # SIGINT, not SIGTERM: native libraries (glog via pycolmap) take over SIGTERM and abort
+            # without unwinding; SIGINT reaches Python as KeyboardInterrupt, so leases are released
+            # and temp output removed.
+            concurrent.futures.wait(self._futures, timeout=INTERRUPT_GRACE_S)
+            if not all(f.done() for f in self._futures):
+                for process in list(getattr(self._pool, "_processes", {}).values()):
+                    if process.is_alive():
+                        os.kill(process.pid, signal.SIGINT)
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 

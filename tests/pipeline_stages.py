@@ -43,6 +43,7 @@ class CountParams:
     trace: str = ""           # non-semantic: file the stage appends "<pid> <i>" to at every step
     step_seconds: float = 0.0  # non-semantic: slows the stage so a test can interrupt it
     gate: str = ""            # non-semantic: at step 1 wait until this file exists
+    native_sigterm: bool = False  # non-semantic: SIGTERM kills without unwinding, as after glog's handler
 
 
 class CountStage(Stage):
@@ -51,10 +52,12 @@ class CountStage(Stage):
     name = "count"
     version = "1"
     Params = CountParams
-    nonsemantic_params = frozenset({"trace", "step_seconds", "gate"})
+    nonsemantic_params = frozenset({"trace", "step_seconds", "gate", "native_sigterm"})
 
     def run(self, ctx) -> None:
         p = ctx.params
+        if p.native_sigterm:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
         i, total = 0, p.start
         resume = ctx.latest_checkpoint()
         if resume is not None:

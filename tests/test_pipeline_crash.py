@@ -115,7 +115,8 @@ def test_two_processes_same_key_compute_once(tmp_path):
 @pytest.mark.parametrize("executor", ["serial", "process"])
 def test_ctrl_c_stops_cleanly_keeping_checkpoints(tmp_path, executor):
     trace = tmp_path / "trace"
-    steps = [{"stage": "count", "params": {"n": 200, "trace": str(trace), "step_seconds": 0.05}, "label": "c"}]
+    steps = [{"stage": "count", "label": "c",
+              "params": {"n": 200, "trace": str(trace), "step_seconds": 0.05, "native_sigterm": True}}]
     proc = start(tmp_path, "interrupted", steps, tmp_path / "cache", executor=executor)
     wait_for(lambda: counted(trace) >= 3, what="3 counted steps")
     proc.send_signal(signal.SIGINT)
