@@ -12,9 +12,9 @@ import time
 from pathlib import Path
 
 
-def _timed(fn):
+def _timed(fn, *args, **kwargs):
     start = time.perf_counter()
-    result = fn()
+    result = fn(*args, **kwargs)
     return result, time.perf_counter() - start
 
 
@@ -48,14 +48,14 @@ def main() -> None:
             c = SCENES[name]
             for workers in sorted({1, min(2, cores)}):
                 folder = tmp / f"{name}-w{workers}"
-                _, seconds = _timed(lambda: generate_scene(name, folder, workers=workers))
+                _, seconds = _timed(generate_scene, name, folder, workers=workers)
                 print(f"render {name:9s} {c.n_views} views {c.width}x{c.height} (+GT edits), "
                       f"{workers} process(es): {seconds:6.1f} s")
             scene = tmp / f"{name}-w1"
-            _, seconds = _timed(lambda: preprocess(scene, tmp / f"{name}-ns", PreprocessConfig(method="nerfstudio")))
+            _, seconds = _timed(preprocess, scene, tmp / f"{name}-ns", PreprocessConfig(method="nerfstudio"))
             print(f"preprocess {name} (nerfstudio import of GT cameras): {seconds:.1f} s")
-            report, seconds = _timed(lambda: preprocess(scene, tmp / f"{name}-sfm",
-                                                        PreprocessConfig(method="sfm", num_threads=cores)))
+            report, seconds = _timed(preprocess, scene, tmp / f"{name}-sfm",
+                                     PreprocessConfig(method="sfm", num_threads=cores))
             error, focal = _pose_errors(scene, tmp / f"{name}-sfm")
             print(f"preprocess {name} (SfM, {cores} threads): {seconds:.1f} s; registered "
                   f"{report['registered']}/{report['total']}, {report['points']} points, reprojection "

@@ -38,7 +38,7 @@ class PreprocessStage(Stage):
     external = ("source",)
     resources = Resources(cpus=2, gpus=0, memory_gb=3)
     nonsemantic_params = frozenset({"num_threads"})
-    packages = ("pycolmap", "opencv-contrib-python-headless", "numpy")
+    packages = ("pycolmap", "opencv-contrib-python-headless", "numpy", "OpenImageIO")
 
     def run(self, ctx: StageContext) -> None:
         import dataclasses

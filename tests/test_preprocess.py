@@ -137,11 +137,11 @@ def test_empty_and_truncated_images_are_named(tmp_path):
     (tmp_path / "empty.png").write_bytes(b"")
     with pytest.raises(InputError, match=r"empty\.png.*0 bytes"):
         read_image(tmp_path / "empty.png")
-    ok, data = cv2.imencode(".png", np.random.default_rng(0).integers(0, 255, (64, 64, 3), dtype=np.uint8))
+    _, data = cv2.imencode(".png", np.random.default_rng(0).integers(0, 255, (64, 64, 3), dtype=np.uint8))
     (tmp_path / "cut.png").write_bytes(data.tobytes()[: len(data) // 2])
     with pytest.raises(InputError, match=r"cut\.png"):
         read_image(tmp_path / "cut.png")
-    ok, data = cv2.imencode(".jpg", np.full((64, 64, 3), 90, np.uint8))
+    _ok, data = cv2.imencode(".jpg", np.full((64, 64, 3), 90, np.uint8))
     (tmp_path / "cut.jpg").write_bytes(data.tobytes()[:-40])
     with pytest.raises(InputError, match=r"cut\.jpg.*truncated"):
         read_image(tmp_path / "cut.jpg")
@@ -334,3 +334,23 @@ def test_distorted_nerfstudio_images_are_undistorted_to_pinhole(tiny_scene, tmp_
         distorted = cv2.imread(str(folder / "images" / ds.names[i]))[..., ::-1]
         distorted_error = np.abs(distorted[centre].astype(int) - pinhole[i][centre]).mean()
         assert undistorted_error < 4.0 and distorted_error > 2 * undistorted_error
+
+
+def test_jpeg_with_exif_thumbnail_or_appended_data_is_not_called_truncated(tmp_path):
+    import OpenImageIO as oiio
+
+    pixels = np.random.default_rng(1).integers(0, 255, (64, 96, 3), dtype=np.uint8)
+    path = str(tmp_path / "exif.jpg")
+    spec = oiio.ImageSpec(96, 64, 3, oiio.UINT8)
+    spec.attribute("Make", "TestCam")
+    out = oiio.ImageOutput.create(path)
+    out.open(path, spec)
+    out.write_image(pixels)
+    out.close()
+    assert read_image(tmp_path / "exif.jpg").shape == (64, 96, 3)
+    data = (tmp_path / "exif.jpg").read_bytes()
+    (tmp_path / "motion.jpg").write_bytes(data + b"\x00\x00\x00\x18ftypmp42" + bytes(100))   # appended video
+    assert read_image(tmp_path / "motion.jpg").shape == (64, 96, 3)
+    (tmp_path / "cut.jpg").write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(InputError, match="truncated"):
+        read_image(tmp_path / "cut.jpg")

@@ -78,14 +78,34 @@ def _to_uint8(image: np.ndarray, path: Path) -> np.ndarray:
 
 
 def _looks_truncated(path: Path) -> bool:
-    """OpenCV decodes some truncated files silently (grey fill); check the format's end marker."""
+    """OpenCV decodes some truncated files silently (grey fill); check that the format's end marker
+    follows the image data. Data appended after the image (motion photos) is allowed."""
     data = path.read_bytes()
     suffix = path.suffix.lower()
     if suffix in (".jpg", ".jpeg"):
-        return not data.rstrip(b"\x00").endswith(b"\xff\xd9")
+        scan = _jpeg_first_scan(data)
+        return scan < 0 or data.find(b"\xff\xd9", scan) < 0
     if suffix == ".png":
-        return b"IEND" not in data[-16:]
+        return data.find(b"IEND", 8) < 0
     return False
+
+
+def _jpeg_first_scan(data: bytes) -> int:
+    """Offset of the main image's first start-of-scan segment (walking the marker segments, so an
+    EXIF thumbnail's own markers inside APP1 are skipped), or -1."""
+    pos = 2
+    while pos + 4 <= len(data):
+        if data[pos] != 0xFF:
+            return -1
+        marker = data[pos + 1]
+        if marker == 0xFF:              # fill byte
+            pos += 1
+            continue
+        length = int.from_bytes(data[pos + 2:pos + 4], "big")
+        if marker == 0xDA:
+            return pos + 2 + length
+        pos += 2 + length
+    return -1
 
 
 def exif_orientation(path: Path) -> int:
