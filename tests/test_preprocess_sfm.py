@@ -92,3 +92,12 @@ def test_sfm_that_registers_under_half_lists_the_images(tiny_scene, tmp_path):
         preprocess(folder, tmp_path / "out", PreprocessConfig(method="sfm", num_threads=2))
     message = str(err.value)
     assert "zz_other_0.png" in message and "overlap" in message
+
+
+@pytest.mark.slow
+def test_sequential_matcher_registers_tiny(tiny_scene, tmp_path):
+    report = preprocess(tiny_scene, tmp_path / "seq", PreprocessConfig(method="sfm", matcher="sequential",
+                                                                       num_threads=2))
+    assert report["matcher"] == "sequential" and report["registered"] == report["total"] == 26
+    error, _ = pose_errors(tiny_scene, tmp_path / "seq")
+    assert error < 0.03

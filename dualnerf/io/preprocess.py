@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from dualnerf.dataset import save_dataset
-from dualnerf.io.build import build_dataset, carry_scene_files
+from dualnerf.io.build import UNDISTORT_MIN_PIXELS, build_dataset, carry_scene_files, distortion_pixels
 from dualnerf.io.colmap import find_model, import_colmap_model
 from dualnerf.io.errors import InputError
 from dualnerf.io.nerfstudio import find_transforms, import_nerfstudio
@@ -80,7 +80,10 @@ def preprocess(source: Path, out: Path, config: PreprocessConfig, scratch: Path 
               "unregistered": recon.report.get("unregistered", []),
               "mean_reprojection_error": recon.report.get("mean_reprojection_error"),
               "points": recon.report.get("points", 0 if recon.points is None else len(recon.points)),
-              "focal_px": float(recon.intrinsics[0, 0]), "gt_edits": carried,
+              "focal_px": float(recon.intrinsics[0, 0]), "distortion": [float(v) for v in recon.distortion[0]],
+              "undistorted": bool(distortion_pixels(recon.distortion[0], recon.intrinsics[0], *recon.sizes[0])
+                                  > UNDISTORT_MIN_PIXELS),
+              "gt_edits": carried,
               **{k: v for k, v in recon.report.items() if k not in ("registered", "total", "unregistered",
                                                                    "mean_reprojection_error", "points")}}
     (out / "sfm_report.json").write_text(json.dumps(report, indent=1))
