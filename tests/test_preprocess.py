@@ -354,3 +354,11 @@ def test_jpeg_with_exif_thumbnail_or_appended_data_is_not_called_truncated(tmp_p
     (tmp_path / "cut.jpg").write_bytes(data[: len(data) * 2 // 3])
     with pytest.raises(InputError, match="truncated"):
         read_image(tmp_path / "cut.jpg")
+
+
+def test_bad_sfm_options_fail_before_any_work(tiny_scene, tmp_path):
+    with pytest.raises(InputError, match="unknown matcher 'fast'"):
+        preprocess(tiny_scene, tmp_path / "a", PreprocessConfig(method="sfm", matcher="fast"))
+    with pytest.raises(InputError, match="camera_model 'FISHEYE'"):
+        preprocess(tiny_scene, tmp_path / "b", PreprocessConfig(method="sfm", camera_model="FISHEYE"))
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

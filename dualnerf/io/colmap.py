@@ -17,6 +17,8 @@ _MODELS = {
     "OPENCV": lambda p: ((p[0], p[1], p[2], p[3]), (p[4], p[5], p[6], p[7], 0)),
 }
 
+SUPPORTED_MODELS = tuple(_MODELS)
+
 
 def find_model(source: Path) -> Path | None:
     """The sparse model folder in `source` (itself, sparse/0 or sparse), else None."""

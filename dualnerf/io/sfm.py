@@ -57,6 +57,13 @@ def run_sfm(source: Path, scratch: Path, config) -> Reconstruction:
     """Reconstruct the cameras of the images in `source`; `config` is a PreprocessConfig."""
     import pycolmap
 
+    from dualnerf.io.colmap import SUPPORTED_MODELS
+
+    if config.matcher not in ("auto", "exhaustive", "sequential"):
+        raise InputError(f"unknown matcher '{config.matcher}'; use auto, exhaustive or sequential.")
+    if config.camera_model not in SUPPORTED_MODELS:
+        raise InputError(f"camera_model '{config.camera_model}' is not supported for SfM; use one of "
+                         f"{', '.join(SUPPORTED_MODELS)}.")
     scratch = Path(scratch)
     if scratch.exists():
         shutil.rmtree(scratch)      # a retried attempt starts clean: COLMAP appends to databases
@@ -90,14 +97,12 @@ def run_sfm(source: Path, scratch: Path, config) -> Reconstruction:
     if matcher == "exhaustive":
         pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification,
                                   device=pycolmap.Device.cpu)
-    elif matcher == "sequential":
+    else:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = SEQUENTIAL_OVERLAP
         pairing.num_threads = threads
         pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing,
                                   verification_options=verification, device=pycolmap.Device.cpu)
-    else:
-        raise InputError(f"unknown matcher '{config.matcher}'; use auto, exhaustive or sequential.")
 
     mapping = pycolmap.IncrementalPipelineOptions()
     mapping.num_threads = threads
