@@ -239,3 +239,19 @@ def test_nerfstudio_format_writes_top_level_transforms(tmp_path):
     doc = json.loads((out / "transforms.json").read_text())
     assert [f["file_path"] for f in doc["frames"]] == [f"images/view_{i:03d}.png" for i in range(3)]
     assert (out / doc["ply_file_path"]).is_file()
+
+
+def test_scene_command(tmp_path, capsys):
+    from stages.cli import main
+
+    out = tmp_path / "s"
+    assert main(["--quiet", "scene", "tiny", "--out", str(out), "--n-views", "3", "--width", "32",
+                 "--height", "24", "--workers", "1"]) == 0
+    assert "SYNTHETIC" in capsys.readouterr().err
+    assert load_scene_spec(out).width == 32 and len(list((out / "images").iterdir())) == 3
+    assert main(["scene", "tiny", "--out", str(out)]) == 2          # refuses a non-empty folder
+    assert "not empty" in capsys.readouterr().err
+    assert main(["scene", "castle", "--out", str(tmp_path / "c")]) == 2
+    assert "available scenes: campsite, tiny" in capsys.readouterr().err
+    assert main(["scene", "--list"]) == 0
+    assert "blue_tent" in capsys.readouterr().out
