@@ -12,6 +12,15 @@ import time
 from pathlib import Path
 
 
+def _cpu_seconds() -> float:
+    """CPU time of this process and its finished children (render workers): the wall time an idle
+    machine would need is about this divided by the cores used."""
+    import resource
+
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
 def _timed(fn, *args, **kwargs):
     start = time.perf_counter()
     result = fn(*args, **kwargs)
@@ -48,9 +57,10 @@ def main() -> None:
             c = SCENES[name]
             for workers in sorted({1, min(2, cores)}):
                 folder = tmp / f"{name}-w{workers}"
+                cpu = _cpu_seconds()
                 _, seconds = _timed(generate_scene, name, folder, workers=workers)
                 print(f"render {name:9s} {c.n_views} views {c.width}x{c.height} (+GT edits), "
-                      f"{workers} process(es): {seconds:6.1f} s")
+                      f"{workers} process(es): {seconds:6.1f} s wall, {_cpu_seconds() - cpu:6.1f} s CPU")
             scene = tmp / f"{name}-w1"
             _, seconds = _timed(preprocess, scene, tmp / f"{name}-ns", PreprocessConfig(method="nerfstudio"))
             print(f"preprocess {name} (nerfstudio import of GT cameras): {seconds:.1f} s")

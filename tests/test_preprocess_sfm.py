@@ -52,6 +52,9 @@ def test_sfm_registers_tiny_and_colmap_import_matches(tiny_scene, tmp_path):
     assert report["mean_reprojection_error"] < 1.0
     error, focal = pose_errors(tiny_scene, tmp_path / "sfm")
     assert error < 0.03 and abs(focal) < 0.06
+    # num_threads is non-semantic: one thread gives the very same cameras.
+    preprocess(tiny_scene, tmp_path / "sfm1", PreprocessConfig(method="auto", num_threads=1))
+    assert np.array_equal(load_dataset(tmp_path / "sfm1").c2w, load_dataset(tmp_path / "sfm").c2w)
     # The same model imported as a COLMAP sparse folder gives the same dataset.
     colmap = tmp_path / "colmap"
     shutil.copytree(tmp_path / "scratch" / "sparse" / "0", colmap / "sparse" / "0")

@@ -132,7 +132,7 @@ def _sun_visibility(world: World, points, normals, index) -> np.ndarray:
 
 def shade(world: World, geometry: Geometry, variant: Variant | None = None,
           fields: dict[int, dict] | None = None) -> np.ndarray:
-    """Linear RGB colours (R, 3) in [0, 1] of the traced hits under a material variant."""
+    """Display RGB colours (R, 3) in [0, 1] of the traced hits under a material variant."""
     variant = variant or Variant("original")
     sun = np.asarray(world.sun_direction, dtype=np.float64)
     sun = sun / np.linalg.norm(sun)
