@@ -102,6 +102,8 @@ class EvaluateStage(Stage):
         if len(train) < 2:
             raise EvaluateError(f"{data_dir}: the dataset has {len(train)} training frame(s); a camera path "
                                 f"needs at least 2.")
+        # Built before rendering so that a missing model folder fails in seconds, not after the renders.
+        encoder, encoder_tag, captions_note = _encoder(p, data_dir, dataset, train, edit_spec)
         path = smooth_camera_path(dataset.c2w[train], n_frames=p.n_frames)
         key_frames = [int(train[i]) for i in path.key_indices]
         ref = int(train[0])
@@ -172,7 +174,6 @@ class EvaluateStage(Stage):
             notes["ground_truth"] = (f"no ground-truth views for edit '{p.edit_id}' in {data_dir / 'gt' / 'edits'}; "
                                      f"ground-truth metrics are not computed (real scenes have none).")
 
-        encoder, encoder_tag, captions_note = _encoder(p, data_dir, dataset, train, edit_spec)
         if captions_note:
             notes["clip_text_image_direction"] = captions_note
         e_orig = _encode(encoder, frames["original"])
@@ -295,17 +296,15 @@ def _encode(encoder, frames):
 
 
 def _editor_identity(edit_dir) -> dict | None:
-    """The editor that produced the edit result, from its manifest (record "editor", else the "editor"
-    parameter); None for the unedited scene."""
+    """The editor that produced the edit result, from the edit stage's edit.json; None for the unedited
+    scene."""
     if edit_dir is None:
         return None
-    manifest_path = Path(edit_dir) / "manifest.json"
+    path = Path(edit_dir) / "edit.json"
     try:
-        manifest = json.loads(manifest_path.read_text())
+        editor = json.loads(path.read_text()).get("editor")
     except (FileNotFoundError, json.JSONDecodeError):
-        return {"kind": "unknown", "note": f"{manifest_path} missing or unreadable"}
-    recorded = manifest.get("record", {}).get("editor")
-    if isinstance(recorded, dict) and recorded.get("kind"):
-        return recorded
-    kind = manifest.get("params", {}).get("editor")
-    return {"kind": kind} if kind else {"kind": "unknown"}
+        editor = None
+    if isinstance(editor, dict) and editor.get("kind"):
+        return editor
+    return {"kind": "unknown", "note": f"{path} is missing or names no editor"}

@@ -29,9 +29,8 @@ def models(tmp_path_factory):
         dual.dynamic_field.load_state_dict(fresh.state_dict())
     dual.render_blend = (0.6, 0.6)
     save_model(root / "edit" / "model", dual)
-    (root / "edit" / "manifest.json").write_text(json.dumps(
-        {"params": {"editor": "synthetic"},
-         "record": {"editor": {"kind": "synthetic", "name": "InstructPix2PixEmulator", "is_simulator": True}}}))
+    (root / "edit" / "edit.json").write_text(json.dumps(
+        {"editor": {"kind": "synthetic", "name": "InstructPix2PixEmulator", "is_simulator": True}}))
     return root
 
 
@@ -139,7 +138,11 @@ def test_dual_field_without_blend_is_refused(tmp_path, tiny_dataset, models):
         run_evaluate(tmp_path, tiny_dataset, broken, edited=True, n_frames=2)
 
 
-def test_bad_params_are_explained(tmp_path, models):
+def test_bad_params_are_explained(tmp_path, tiny_dataset, models):
+    from dualnerf.encoders import EncoderError
+
+    with pytest.raises(EncoderError, match="needs a model folder"):       # before any rendering
+        run_evaluate(tmp_path / "a", tiny_dataset, models, edited=False, encoder="clip")
     with pytest.raises(EvaluateError, match="n_frames"):
         run_evaluate(tmp_path, tmp_path, models, edited=False, n_frames=1)
     with pytest.raises(EvaluateError, match="path_scale"):
