@@ -25,6 +25,8 @@ CONVENTION = "c2w 4x4, OpenCV camera axes (x right, y down, z forward); world no
 class DatasetError(ValueError):
     """A dataset folder that cannot be used; the message names the file and what to do."""
 
+    user_error = True   # the CLI prints the message and exits 2 (rule in pipeline.errors)
+
 
 @dataclass
 class Dataset:
