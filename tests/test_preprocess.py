@@ -362,3 +362,10 @@ def test_bad_sfm_options_fail_before_any_work(tiny_scene, tmp_path):
     with pytest.raises(InputError, match="camera_model 'FISHEYE'"):
         preprocess(tiny_scene, tmp_path / "b", PreprocessConfig(method="sfm", camera_model="FISHEYE"))
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_a_broken_image_in_a_folder_stops_preprocess_with_its_name(tiny_scene, tmp_path):
+    folder = _image_folder(tiny_scene, tmp_path, 5)
+    (folder / "view_002.png").write_bytes(b"")
+    with pytest.raises(InputError, match=r"view_002\.png is empty"):
+        preprocess(folder, tmp_path / "out", PreprocessConfig(method="sfm"))
