@@ -14,6 +14,9 @@ Outputs:
     views/{original,edited}/<name>    renders at the fixed views (held-out frames; training frames if
     views/{gt_edit,gt_mask}/<name>    the dataset holds none out), plus ground truth where it exists
     camera_path.json                  the path's c2w matrices and how it was built
+
+Rendering is checkpointed every RENDER_CHECKPOINT_EVERY renders (lossless PNGs in the step's scratch
+folder): a killed run resumes after the newest checkpoint and publishes the same result.
 """
 from __future__ import annotations
 
@@ -21,11 +24,14 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from pipeline.stage import Resources, Stage, StageContext
 
 PATH_FPS = 24.0
 FALLBACK_VIEWS = 4          # fixed views taken from the training frames when none are held out
 ENCODE_BATCH = 16
+RENDER_CHECKPOINT_EVERY = 16   # renders between in-stage checkpoints (a killed run resumes after them)
 
 
 class EvaluateError(ValueError):
@@ -58,7 +64,6 @@ class EvaluateStage(Stage):
     packages = ("torch", "onnxruntime")
 
     def run(self, ctx: StageContext) -> None:
-        import numpy as np
         import torch
 
         from dualnerf.camera_path import smooth_camera_path
@@ -127,19 +132,25 @@ class EvaluateStage(Stage):
             view_split = "train"
             view_ids = train[np.round(np.linspace(0, len(train) - 1, min(FALLBACK_VIEWS, len(train)))).astype(int)]
         models = [("original", static, None)] + ([] if edited is None else [("edited", edited, blend)])
+        jobs = []                             # (kind, group, model, blend, c2w, intrinsics, width, height)
+        for kind, model, model_blend in models:
+            jobs += [(kind, "frames", model, model_blend, c2w, path_intrinsics, path_width, path_height)
+                     for c2w in path.c2w]
+            jobs += [(kind, "views", model, model_blend, dataset.c2w[i], dataset.intrinsics[i], dataset.width,
+                      dataset.height) for i in view_ids]
+        rendered = _resume_renders(ctx, [job[6:8] for job in jobs])
+        if rendered:
+            ctx.log.info("resuming after %d of %d renders (checkpoint)", len(rendered), len(jobs))
+        with ctx.progress(len(jobs), "render path and views", initial=len(rendered)) as bar:
+            for job in jobs[len(rendered):]:
+                rendered.append(render(*job[2:]))
+                bar.update()
+                if len(rendered) % RENDER_CHECKPOINT_EVERY == 0 and len(rendered) < len(jobs):
+                    _checkpoint_renders(ctx, rendered)
         frames: dict[str, list] = {"original": [], "edited": []}
         views: dict[str, list] = {"original": [], "edited": []}
-        total = len(models) * (len(path.c2w) + len(view_ids))
-        with ctx.progress(total, "render path and views") as bar:
-            for kind, model, model_blend in models:
-                for c2w in path.c2w:
-                    frames[kind].append(render(model, model_blend, c2w, path_intrinsics, path_width,
-                                               path_height))
-                    bar.update()
-                for i in view_ids:
-                    views[kind].append(render(model, model_blend, dataset.c2w[i], dataset.intrinsics[i],
-                                              dataset.width, dataset.height))
-                    bar.update()
+        for (kind, group, *_), image in zip(jobs, rendered):
+            (frames if group == "frames" else views)[kind].append(image)
         if edited is None:                    # the unedited scene: edited renders are the original ones
             frames["edited"], views["edited"] = frames["original"], views["original"]
 
@@ -219,6 +230,31 @@ def _write_png(path: Path, image) -> None:
         raise OSError(f"could not write {path}")
 
 
+def _checkpoint_renders(ctx: StageContext, rendered: list) -> None:
+    """Every render so far as lossless PNG, so a resumed run continues with identical images."""
+    with ctx.checkpoint(len(rendered)) as folder:
+        for k, image in enumerate(rendered):
+            _write_png(folder / f"{k:05d}.png", image)
+
+
+def _resume_renders(ctx: StageContext, sizes: list[tuple[int, int]]) -> list:
+    """The renders of the newest checkpoint, if it fits this run's jobs (their (width, height)); else []."""
+    import cv2
+
+    latest = ctx.latest_checkpoint()
+    if latest is None:
+        return []
+    step, folder = latest
+    images = []
+    for k in range(min(step, len(sizes))):
+        image = cv2.imread(str(folder / f"{k:05d}.png"), cv2.IMREAD_COLOR)
+        if image is None or (image.shape[1], image.shape[0]) != tuple(sizes[k]):
+            ctx.log.warning("checkpoint %s does not match this run's renders; rendering from the start", folder)
+            return []
+        images.append(np.ascontiguousarray(image[..., ::-1]))
+    return images
+
+
 def _edit_captions(data_dir: Path, p: EvaluateParams) -> dict:
     """Source/target captions: the params, else the scene's scene.toml entry for edit_id."""
     captions = {"source_caption": p.source_caption, "target_caption": p.target_caption}
@@ -250,8 +286,6 @@ def _ground_truth(data_dir: Path, edit_id: str, dataset, view_ids):
 
 def _encoder(p: EvaluateParams, data_dir: Path, dataset, train, captions: dict):
     """The image-text encoder, its tag for metric entries, and why C_t2i cannot be computed (or None)."""
-    import numpy as np
-
     from dualnerf.encoders import load_encoder
     from dualnerf.scenes.spec import load_gt_edit
 
@@ -288,8 +322,6 @@ def _encoder(p: EvaluateParams, data_dir: Path, dataset, train, captions: dict):
 
 
 def _encode(encoder, frames):
-    import numpy as np
-
     batches = [encoder.encode_images(np.stack(frames[s:s + ENCODE_BATCH]))
                for s in range(0, len(frames), ENCODE_BATCH)]
     return np.concatenate(batches, axis=0)

@@ -34,11 +34,11 @@ def models(tmp_path_factory):
     return root
 
 
-def run_evaluate(tmp_path, dataset, models, edited: bool, **params):
+def run_evaluate(tmp_path, dataset, models, edited: bool, out="out", **params):
     inputs = {"dataset": dataset, "fit": models / "fit"}
     if edited:
         inputs["edit"] = models / "edit"
-    ctx = StepContext(key="test", params=EvaluateParams(**params), inputs=inputs, out_dir=tmp_path / "out",
+    ctx = StepContext(key="test", params=EvaluateParams(**params), inputs=inputs, out_dir=tmp_path / out,
                       scratch_dir=tmp_path / "scratch", log=logging.getLogger("test-evaluate"))
     EvaluateStage().run(ctx)
     return ctx
@@ -124,6 +124,43 @@ def test_edited_scene_metrics_match_independent_recomputation(tmp_path, tiny_dat
                  "clip_text_image_direction"):
         assert -1.0 <= values[name] <= 1.0 and np.isfinite(values[name]), name
     assert doc["target_caption"] == "a campsite with a tent covered in fresh snow"
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_from_render_checkpoint(tmp_path, tiny_dataset, models, monkeypatch):
+    """Kill rendering after 20 renders (one checkpoint at 16), rerun: only the rest is rendered and the
+    result equals an uninterrupted run's."""
+    import shutil
+
+    from dualnerf import rendering
+
+    real_render = rendering.render_view
+    calls = {"n": 0, "limit": None}
+
+    def counting_render(*args, **kwargs):
+        calls["n"] += 1
+        if calls["limit"] is not None and calls["n"] > calls["limit"]:
+            raise KeyboardInterrupt("simulated kill")
+        return real_render(*args, **kwargs)
+
+    monkeypatch.setattr(rendering, "render_view", counting_render)
+    params = {"n_frames": 8, "edit_id": "snow", "path_scale": 0.5}
+    total = 2 * (8 + 4)                                   # 2 models x (8 path frames + 4 held-out views)
+    full = run_evaluate(tmp_path / "full", tiny_dataset, models, edited=True, **params)
+    assert calls["n"] == total
+    calls.update(n=0, limit=20)
+    with pytest.raises(KeyboardInterrupt):
+        run_evaluate(tmp_path / "killed", tiny_dataset, models, edited=True, out="attempt1", **params)
+    calls.update(n=0, limit=None)
+    resumed = run_evaluate(tmp_path / "killed", tiny_dataset, models, edited=True, out="attempt2", **params)
+    assert calls["n"] == total - 16
+    a, b = full.out_dir, resumed.out_dir
+    assert json.loads((a / "metrics.json").read_text()) == json.loads((b / "metrics.json").read_text())
+    files = sorted(p.relative_to(a) for p in a.rglob("*.png"))
+    assert files == sorted(p.relative_to(b) for p in b.rglob("*.png"))
+    for rel in files:
+        assert (a / rel).read_bytes() == (b / rel).read_bytes(), rel
+    shutil.rmtree(tmp_path / "full")
 
 
 def test_dual_field_without_blend_is_refused(tmp_path, tiny_dataset, models):
