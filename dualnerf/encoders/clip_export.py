@@ -57,6 +57,11 @@ def export_clip(source: str, out_dir: Path, log=print) -> dict:
     from transformers import AutoTokenizer, CLIPModel
 
     out_dir = Path(out_dir)
+    if str(source).startswith("open_clip:"):
+        # open_clip checkpoints are not supported by this exporter (open_clip is not a dependency here).
+        raise EncoderError(f"'{source}': open_clip models cannot be exported by this version; use the Hugging "
+                           f"Face transformers version of the weights (e.g. laion/CLIP-ViT-B-32-laion2B-s34B-b79K "
+                           f"or openai/clip-vit-base-patch32).")
     if out_dir.exists() and any(out_dir.iterdir()):
         raise EncoderError(f"{out_dir} exists and is not empty; choose a new --out folder (existing model "
                            f"folders are never overwritten).")
