@@ -34,16 +34,19 @@ class Primitive:
             ) -> tuple[np.ndarray, np.ndarray]:
         """`candidates`: indices of the rays that may hit (the caller's bounding-sphere test); the
         others get t = inf without being traced."""
+        if candidates is None:
+            return self.hit_rays(o, d)
         t = np.full(len(o), np.inf)
         n = np.zeros_like(o)
-        if candidates is None:
-            candidates = slice(None)
-        o_local = (o[candidates] - np.asarray(self.centre)) @ self.rotation
-        d_local = d[candidates] @ self.rotation
-        t_c, n_local = self._hit_local(o_local, d_local)
-        t[candidates] = t_c
-        n[candidates] = n_local @ self.rotation.T
+        t[candidates], n[candidates] = self.hit_rays(o[candidates], d[candidates])
         return t, n
+
+    def hit_rays(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(t, world normal) for every ray given."""
+        o_local = (o - np.asarray(self.centre)) @ self.rotation
+        d_local = d @ self.rotation
+        t, n_local = self._hit_local(o_local, d_local)
+        return t, n_local @ self.rotation.T
 
     def bound(self) -> tuple[np.ndarray, float] | None:
         """A world-space bounding sphere (centre, radius), or None for unbounded shapes."""

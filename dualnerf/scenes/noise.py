@@ -6,6 +6,8 @@ out (a cheap analytic prefilter): aliased texture would differ between views and
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 _PRIMES = np.array([0x8DA6B343, 0xD8163841, 0xCB1AB31F], dtype=np.uint32)
@@ -49,7 +51,9 @@ def value_noise(p: np.ndarray, salt: int) -> np.ndarray:
     return lerp(lerp(edge(hy0, hz0), edge(hy1, hz0), wy), lerp(edge(hy0, hz1), edge(hy1, hz1), wy), wz)
 
 
-def _octave_frames(seed: int, octaves: int) -> list[tuple[np.ndarray, np.ndarray, int]]:
+@functools.lru_cache(maxsize=1024)
+def _octave_frames(seed: int, octaves: int) -> tuple[tuple[np.ndarray, np.ndarray, int], ...]:
+    """Per-octave lattice rotation, offset and hash salt (cached: every view reuses them)."""
     rng = np.random.default_rng(seed)
     frames = []
     for _ in range(octaves):
@@ -57,7 +61,7 @@ def _octave_frames(seed: int, octaves: int) -> list[tuple[np.ndarray, np.ndarray
         rotation = q * np.sign(np.diag(r))     # a uniformly random orthogonal frame per octave
         offset = rng.uniform(-1000.0, 1000.0, size=3)
         frames.append((rotation, offset, int(rng.integers(0, 2**32))))
-    return frames
+    return tuple(frames)
 
 
 def fbm(points: np.ndarray, frequency: float, octaves: int, seed: int,

@@ -90,11 +90,13 @@ def trace(world: World, o: np.ndarray, d: np.ndarray, pixel_angle: float) -> Geo
     index = np.full(len(o), -1, dtype=np.int64)
     normals = np.zeros_like(o)
     for k, obj in enumerate(world.objects):
-        t, n = obj.primitive.hit(o, d, _cone_candidates(o[0], d, obj.primitive.bound()))
-        closer = t < t_best
-        t_best = np.where(closer, t, t_best)
-        index = np.where(closer, k, index)
-        normals = np.where(closer[:, None], n, normals)
+        rays = _cone_candidates(o[0], d, obj.primitive.bound())
+        if rays is None:
+            rays = np.arange(len(o))
+        t, n = obj.primitive.hit_rays(o[rays], d[rays])
+        closer = t < t_best[rays]
+        nearer = rays[closer]
+        t_best[nearer], index[nearer], normals[nearer] = t[closer], k, n[closer]
     if np.any(index < 0):
         raise RuntimeError("some camera rays hit nothing; the scene needs a background dome around the cameras")
     points = o + t_best[:, None] * d
@@ -123,9 +125,10 @@ def _sun_visibility(world: World, points, normals, index) -> np.ndarray:
     for obj in world.objects:
         if isinstance(obj.primitive, Dome):
             continue
-        candidates = _parallel_candidates(o_projected[:, :2], o_projected[:, 2], basis, obj.primitive.bound())
-        t, _ = obj.primitive.hit(o, d, candidates)
-        blocked |= np.isfinite(t)
+        rays = _parallel_candidates(o_projected[:, :2], o_projected[:, 2], basis, obj.primitive.bound())
+        rays = np.nonzero(~blocked)[0] if rays is None else rays[~blocked[rays]]
+        t, _ = obj.primitive.hit_rays(o[rays], d[rays])
+        blocked[rays[np.isfinite(t)]] = True
     lit[todo] = np.where(blocked, 0.0, 1.0)
     return lit
 
