@@ -65,6 +65,17 @@ def test_sfm_registers_tiny_and_colmap_import_matches(tiny_scene, tmp_path):
     assert a.names == b.names
     assert np.allclose(a.c2w, b.c2w, atol=1e-9) and np.allclose(a.intrinsics, b.intrinsics)
     assert np.array_equal(a.images, b.images)
+    # ... and so does the text format of the same model.
+    import pycolmap
+
+    text = tmp_path / "colmap_txt"
+    (text / "sparse" / "0").mkdir(parents=True)
+    pycolmap.Reconstruction(str(colmap / "sparse" / "0")).write_text(str(text / "sparse" / "0"))
+    assert (text / "sparse" / "0" / "cameras.txt").is_file()
+    shutil.copytree(tiny_scene / "images", text / "images")
+    preprocess(text, tmp_path / "imported_txt", PreprocessConfig(method="colmap"))
+    c = load_dataset(tmp_path / "imported_txt")
+    assert np.allclose(a.c2w, c.c2w, atol=1e-6) and np.allclose(a.intrinsics, c.intrinsics, atol=1e-6)
 
 
 @pytest.mark.slow
