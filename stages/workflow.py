@@ -165,7 +165,7 @@ def resolve_scene(name: str, scenes_dir: Path) -> tuple[dict[str, Step | Externa
 
 def _edit_vocabulary(name: str, user_folder: Path | None, path: Path):
     from dualnerf.scenes import EditSpec, SceneSpec, load_scene_spec
-    from dualnerf.scenes.generate import BUILDERS
+    from dualnerf.scenes.library import BUILDERS
 
     if user_folder is not None:
         if not (user_folder / "scene.toml").exists():
