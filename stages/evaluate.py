@@ -56,9 +56,11 @@ class EvaluateParams:
 
 class EvaluateStage(Stage):
     name = "evaluate"
-    version = "1"
+    version = "2"
     Params = EvaluateParams
-    upstream = ("dataset", "fit", "edit")
+    # "original": the evaluate result of the unedited scene (same dataset and fit). Edited rows reuse its
+    # f_S renders instead of rendering the same camera path again (the workflow passes it).
+    upstream = ("dataset", "fit", "edit", "original")
     resources = Resources(cpus=2, gpus=0, memory_gb=3)
     nonsemantic_params = frozenset({"num_threads", "chunk"})
     packages = ("torch", "onnxruntime")
@@ -131,7 +133,13 @@ class EvaluateStage(Stage):
         if len(view_ids) == 0:
             view_split = "train"
             view_ids = train[np.round(np.linspace(0, len(train) - 1, min(FALLBACK_VIEWS, len(train)))).astype(int)]
-        models = [("original", static, None)] + ([] if edited is None else [("edited", edited, blend)])
+        reused = None
+        if edited is not None and ctx.inputs.get("original") is not None:
+            reused = _original_renders(Path(ctx.inputs["original"]), path.c2w, (path_width, path_height),
+                                       [dataset.names[i] for i in view_ids])
+            ctx.log.info("reusing the original scene's renders from %s", ctx.inputs["original"])
+        models = [] if reused is not None else [("original", static, None)]
+        models += [] if edited is None else [("edited", edited, blend)]
         jobs = []                             # (kind, group, model, blend, c2w, intrinsics, width, height)
         for kind, model, model_blend in models:
             jobs += [(kind, "frames", model, model_blend, c2w, path_intrinsics, path_width, path_height)
@@ -151,6 +159,8 @@ class EvaluateStage(Stage):
         views: dict[str, list] = {"original": [], "edited": []}
         for (kind, group, *_), image in zip(jobs, rendered):
             (frames if group == "frames" else views)[kind].append(image)
+        if reused is not None:
+            frames["original"], views["original"] = reused
         if edited is None:                    # the unedited scene: edited renders are the original ones
             frames["edited"], views["edited"] = frames["original"], views["original"]
 
@@ -220,6 +230,31 @@ class EvaluateStage(Stage):
         summary = ", ".join(f"{METRICS[k].symbol}={v:.4g}" for k, v in values.items() if np.isfinite(v))
         ctx.log.info("evaluate (%s encoder %s): %s", "edited" if edited is not None else "original scene",
                      encoder_tag, summary)
+
+
+def _original_renders(folder: Path, path_c2w, path_size, view_names) -> tuple[list, list]:
+    """The f_S path frames and view renders of the unedited-scene evaluate result in `folder`; refuses
+    (rather than silently mixing) renders made for another camera path, size or view set."""
+    import cv2
+
+    described = json.loads((folder / "camera_path.json").read_text())
+    same_path = (np.asarray(described["c2w"]).shape == path_c2w.shape
+                 and np.allclose(described["c2w"], path_c2w, atol=1e-9)
+                 and (described["width"], described["height"]) == tuple(path_size))
+    metrics = json.loads((folder / "metrics.json").read_text())
+    if not same_path or metrics["views"]["names"] != list(view_names) or metrics["edited"]:
+        raise EvaluateError(f"{folder} is not the unedited evaluation of this camera path and these views; "
+                            f"the 'original' input must come from the same dataset, fit and n_frames/path_scale.")
+
+    def read(file: Path):
+        image = cv2.imread(str(file), cv2.IMREAD_COLOR)
+        if image is None:
+            raise EvaluateError(f"{file} is missing or unreadable; rerun the unedited-scene evaluation.")
+        return np.ascontiguousarray(image[..., ::-1])
+
+    frames = [read(folder / "frames" / "original" / f"{n:04d}.png") for n in range(len(path_c2w))]
+    views = [read(folder / "views" / "original" / name) for name in view_names]
+    return frames, views
 
 
 def _write_png(path: Path, image) -> None:

@@ -220,7 +220,8 @@ def _expand(path: Path, settings: dict, stage_params: dict) -> Workflow:
                            "instruction": captions["instruction"], "edit_id": edit_id, "seed": seed}
             tag = f"{variant.label}, seed {seed}"
             edit = Step("edit", edit_params, {"dataset": preprocess, "fit": fit}, label=f"edit[{tag}]")
-            evaluate = Step("evaluate", evaluate_common, {"dataset": preprocess, "fit": fit, "edit": edit},
+            evaluate = Step("evaluate", evaluate_common,
+                            {"dataset": preprocess, "fit": fit, "edit": edit, "original": original},
                             label=f"evaluate[{tag}]")
             steps += [edit, evaluate]
             cells.append(Cell(variant.label, evaluate, variant, seed, edit))

@@ -184,3 +184,25 @@ def test_bad_params_are_explained(tmp_path, tiny_dataset, models):
         run_evaluate(tmp_path, tmp_path, models, edited=False, n_frames=1)
     with pytest.raises(EvaluateError, match="path_scale"):
         run_evaluate(tmp_path, tmp_path, models, edited=False, path_scale=0.0)
+
+
+@pytest.mark.slow
+def test_edited_row_reuses_original_renders_with_identical_results(tmp_path, tiny_dataset, models):
+    params = dict(n_frames=3, edit_id="snow", path_scale=0.5)
+    original = run_evaluate(tmp_path, tiny_dataset, models, edited=False, out="original", **params)
+    rendered = run_evaluate(tmp_path, tiny_dataset, models, edited=True, out="rendered", **params)
+    ctx = StepContext(key="test", params=EvaluateParams(**params),
+                      inputs={"dataset": tiny_dataset, "fit": models / "fit", "edit": models / "edit",
+                              "original": original.out_dir},
+                      out_dir=tmp_path / "reused", scratch_dir=tmp_path / "scratch2",
+                      log=logging.getLogger("test-evaluate"))
+    EvaluateStage().run(ctx)
+    a = json.loads((rendered.out_dir / "metrics.json").read_text())["metrics"]
+    b = json.loads((ctx.out_dir / "metrics.json").read_text())["metrics"]
+    assert a == b
+    # A different camera path is refused rather than mixed in.
+    ctx_other = StepContext(key="test", params=EvaluateParams(**{**params, "n_frames": 4}),
+                            inputs={**ctx.inputs}, out_dir=tmp_path / "other", scratch_dir=tmp_path / "s3",
+                            log=logging.getLogger("test-evaluate"))
+    with pytest.raises(EvaluateError, match="not the unedited evaluation"):
+        EvaluateStage().run(ctx_other)
