@@ -92,8 +92,13 @@ class DualField(nn.Module):
         self.static_field = static_field
         self.dynamic_field = dynamic_field
         self.static_field.requires_grad_(False)
-        # The fused field's geometry starts as the static one's; it is updated during editing.
+        # The fused field can only hold density where either field does: start from the union of both
+        # grids (equal to f_S's when f_D is its copy); the trainer then updates it during editing.
         self.occupancy = copy.deepcopy(static_field.occupancy)
+        with torch.no_grad():
+            self.occupancy.mask |= dynamic_field.occupancy.mask.to(self.occupancy.mask.device)
+            self.occupancy.density.copy_(torch.maximum(self.occupancy.density,
+                                                       dynamic_field.occupancy.density.to(self.occupancy.density.device)))
         self.render_blend: tuple[float, float] | None = None
 
     def query(self, x, d, blend=None, retreat: float = 1.0):

@@ -45,7 +45,8 @@ class FieldConfig:
     hidden_width: int = 64
     geo_features: int = 15           # density-MLP outputs passed on to the colour MLP
     direction_degree: int = 4        # SH bands for the view direction (degree**2 features)
-    density_bias: float = -1.0       # initial h_sigma offset: start nearly transparent
+    density_bias: float = -4.0       # initial h_sigma offset: start almost transparent (sigma ~ 0.02) so
+                                     # the occupancy grid can prune free space early
     background: str = "learned"
     samples_per_ray: int = 256       # uniform samples in the ray/cube overlap (before occupancy skipping)
     occupancy_resolution: int = 64

@@ -15,7 +15,8 @@ static/single field, blend=(w_density, w_color) the fused dual field (see dualne
 Sampling: the field lives in the normalised cube [-1,1]^3, so each ray is clipped to the overlap of
 [near, far] with the cube and `samples_per_ray` stratified samples (jittered in training, bin centres
 when rendering) are laid out there. Samples whose occupancy cell is empty are not evaluated and get
-sigma = 0; the field runs only on the rest.
+sigma = 0; a gradient-free density pass then drops samples hidden behind opaque surfaces (transmittance
+below EARLY_STOP); the full field (colour branch, autograd) runs only on what is left.
 
 Colour: C = sum_i w_i c_i + (1 - sum_i w_i) * background, where background is the model's decoded
 background colour for the ray direction (learned, white or black; see dualnerf.fields).
@@ -25,6 +26,9 @@ from __future__ import annotations
 import torch
 
 from dualnerf.fields import decode_color, decode_density
+
+# Samples whose transmittance is below this are not evaluated (they could change the colour by < 1e-4).
+EARLY_STOP = 1e-4
 
 
 def ray_cube_bounds(origins, dirs, near, far):
@@ -58,6 +62,24 @@ def composite(sigma: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
     return transmittance * alpha
 
 
+def _visible_samples(model, points, delta, mask, blend, retreat):
+    """Drop samples behind the first opaque surface (early ray termination, exact up to EARLY_STOP).
+
+    A gradient-free density pass over the occupied samples gives each sample's transmittance T_i; samples
+    with T_i < EARLY_STOP contribute less than that fraction of the ray colour, so the full (colour,
+    autograd) evaluation runs only on the rest. The density pass costs a fraction of a training forward
+    and backward, and occupied cells behind surfaces are the bulk of what the occupancy grid leaves.
+    """
+    if not bool(mask.any()):
+        return mask
+    with torch.no_grad():
+        sigma = torch.zeros(mask.shape, dtype=points.dtype, device=points.device).masked_scatter(
+            mask, decode_density(model.query_density(points[mask], blend=blend, retreat=retreat)).to(points.dtype))
+        tau = sigma * delta
+        transmittance = torch.exp(-(torch.cumsum(tau, dim=-1) - tau))
+    return mask & (transmittance > EARLY_STOP)
+
+
 def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float = 1.0,
                 generator: torch.Generator | None = None) -> dict:
     num_samples = model.config.samples_per_ray
@@ -70,6 +92,7 @@ def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float =
     points = origins[:, None, :] + t[..., None] * dirs[:, None, :]
     # Valid: the ray overlaps the cube, and the sample's occupancy cell may hold density.
     mask = (t_end > t_start)[:, None] & model.occupancy_for(blend).occupied(points)
+    mask = _visible_samples(model, points, delta, mask, blend, retreat)
     ray_id = torch.nonzero(mask)[:, 0]
     h_sigma, h_color = model.query(points[mask], dirs[ray_id], blend=blend, retreat=retreat)
     sigma = torch.zeros(mask.shape, dtype=h_sigma.dtype, device=h_sigma.device).masked_scatter(

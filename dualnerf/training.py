@@ -42,7 +42,7 @@ class TrainConfig:
     beta2: float = 0.99
     eps: float = 1e-15              # tiny eps: grid cells see rare, small gradients (as in hash-grid NeRFs)
     occupancy_every: int = 16
-    occupancy_warmup: int = 32
+    occupancy_warmup: int = 16
     occupancy_decay: float = 0.95
     occupancy_alpha: float = 0.01   # a cell is empty when one sample step there would be this transparent
 

@@ -155,3 +155,14 @@ def test_dual_training_changes_only_the_dynamic_field():
     assert all(torch.equal(a, b) for a, b in zip(before_static, model.static_field.parameters()))
     assert any(not torch.equal(a, b) for a, b in zip(before_dynamic, model.dynamic_field.parameters()))
     assert not math.isnan(trainer.step(4, blend=schedule.weights(5))["loss"])
+
+
+def test_fused_occupancy_is_the_union_of_both_fields():
+    static, other = static_field(0), static_field(1)
+    static.occupancy.mask.zero_()
+    static.occupancy.mask[0] = True
+    other.occupancy.mask.zero_()
+    other.occupancy.mask[-1] = True
+    model = DualField(static, other)
+    assert torch.equal(model.occupancy_for((0.1, 0.1)).mask, static.occupancy.mask | other.occupancy.mask)
+    assert model.occupancy_for(None) is static.occupancy
