@@ -48,7 +48,9 @@ class FieldConfig:
     density_bias: float = -4.0       # initial h_sigma offset: start almost transparent (sigma ~ 0.02) so
                                      # the occupancy grid can prune free space early
     background: str = "learned"
-    samples_per_ray: int = 256       # uniform samples in the ray/cube overlap (before occupancy skipping)
+    samples_per_ray: int = 48        # field evaluations per ray (intervals placed by the proposal)
+    proposal_samples: int = 256      # occupancy-grid lookups per ray for the proposal (cheap)
+    proposal_uniform: float = 0.15   # share of the intervals spread uniformly along the ray
     occupancy_resolution: int = 64
 
     def __post_init__(self):
@@ -56,7 +58,10 @@ class FieldConfig:
             raise FieldConfigError(f"FieldConfig.background must be one of {BACKGROUNDS}, got {self.background!r}")
         if not self.grid_resolutions or min(self.grid_resolutions) < 2:
             raise FieldConfigError(f"FieldConfig.grid_resolutions needs values >= 2, got {self.grid_resolutions}")
-        for name in ("grid_features", "hidden_width", "geo_features", "samples_per_ray", "occupancy_resolution"):
+        if not 0.0 < self.proposal_uniform <= 1.0:
+            raise FieldConfigError(f"FieldConfig.proposal_uniform must be in (0, 1], got {self.proposal_uniform}")
+        for name in ("grid_features", "hidden_width", "geo_features", "samples_per_ray", "proposal_samples",
+                     "occupancy_resolution"):
             if getattr(self, name) < 1:
                 raise FieldConfigError(f"FieldConfig.{name} must be >= 1, got {getattr(self, name)}")
 

@@ -3,6 +3,8 @@
 API:
     ray_cube_bounds(origins, dirs, near, far) -> (t_start (R,), t_end (R,))
     stratified_samples(t_start, t_end, num_samples, jitter=None) -> (t (R,S), delta (R,S))
+    proposal_intervals(t_start, t_end, points_density, num_samples, num_proposal, uniform_share, jitter=None)
+        -> (t (R,S) interval midpoints, delta (R,S) interval lengths)
     composite(sigma (R,S), delta (R,S)) -> weights (R,S)        w_i = T_i (1 - exp(-delta_i sigma_i))
     render_rays(model, origins, dirs, near, far, *, blend=None, retreat=1.0, generator=None)
         -> dict(color (R,3), opacity (R,), evaluated: int)
@@ -13,10 +15,10 @@ API:
 static/single field, blend=(w_density, w_color) the fused dual field (see dualnerf.dual_field).
 
 Sampling: the field lives in the normalised cube [-1,1]^3, so each ray is clipped to the overlap of
-[near, far] with the cube and `samples_per_ray` stratified samples (jittered in training, bin centres
-when rendering) are laid out there. Samples whose occupancy cell is empty are not evaluated and get
-sigma = 0; a gradient-free density pass then drops samples hidden behind opaque surfaces (transmittance
-below EARLY_STOP); the full field (colour branch, autograd) runs only on what is left.
+[near, far] with the cube. That segment is cut into `samples_per_ray` intervals by `proposal_intervals`:
+fine where the occupancy grid's density estimate says the visible surface is, coarse elsewhere (jittered
+in training, deterministic when rendering). The field is evaluated at interval midpoints; midpoints in
+empty occupancy cells are not evaluated and get sigma = 0.
 
 Colour: C = sum_i w_i c_i + (1 - sum_i w_i) * background, where background is the model's decoded
 background colour for the ray direction (learned, white or black; see dualnerf.fields).
@@ -27,8 +29,6 @@ import torch
 
 from dualnerf.fields import decode_color, decode_density
 
-# Samples whose transmittance is below this are not evaluated (they could change the colour by < 1e-4).
-EARLY_STOP = 1e-4
 
 
 def ray_cube_bounds(origins, dirs, near, far):
@@ -62,37 +62,54 @@ def composite(sigma: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
     return transmittance * alpha
 
 
-def _visible_samples(model, points, delta, mask, blend, retreat):
-    """Drop samples behind the first opaque surface (early ray termination, exact up to EARLY_STOP).
+def proposal_intervals(t_start, t_end, points_density, num_samples: int, num_proposal: int,
+                       uniform_share: float, jitter: torch.Tensor | None = None):
+    """Split each ray's [t_start, t_end] into `num_samples` intervals, fine where the proposal puts weight.
 
-    A gradient-free density pass over the occupied samples gives each sample's transmittance T_i; samples
-    with T_i < EARLY_STOP contribute less than that fraction of the ray colour, so the full (colour,
-    autograd) evaluation runs only on the rest. The density pass costs a fraction of a training forward
-    and backward, and occupied cells behind surfaces are the bulk of what the occupancy grid leaves.
+    The proposal is a coarse render of a cheap density estimate (the occupancy grid's per-cell density,
+    `points_density(points) -> sigma`, evaluated at `num_proposal` bin centres): its blending weights,
+    mixed with a uniform share so that every part of the ray keeps some intervals (new geometry can still
+    appear), form a piecewise-constant pdf. Interval edges are its quantiles at 0, (i + jitter_i) / S, 1
+    (hierarchical sampling by inverse transform, as in NeRF's coarse-to-fine scheme), so the intervals
+    tile the segment exactly. Returns the interval midpoints t (R,S) and lengths delta (R,S).
     """
-    if not bool(mask.any()):
-        return mask
+    n_rays = t_start.shape[0]
+    t_c, delta_c = stratified_samples(t_start, t_end, num_proposal)
     with torch.no_grad():
-        sigma = torch.zeros(mask.shape, dtype=points.dtype, device=points.device).masked_scatter(
-            mask, decode_density(model.query_density(points[mask], blend=blend, retreat=retreat)).to(points.dtype))
-        tau = sigma * delta
-        transmittance = torch.exp(-(torch.cumsum(tau, dim=-1) - tau))
-    return mask & (transmittance > EARLY_STOP)
+        weights = composite(points_density(t_c), delta_c)
+        pdf = (1.0 - uniform_share) * weights / (weights.sum(-1, keepdim=True) + 1e-6) + uniform_share / num_proposal
+        pdf = pdf / pdf.sum(-1, keepdim=True)
+        cdf = torch.cat([torch.zeros(n_rays, 1, dtype=pdf.dtype, device=pdf.device), pdf.cumsum(-1)], dim=-1)
+        cdf[:, -1] = 1.0
+        offset = 0.5 if jitter is None else jitter
+        inner = (torch.arange(1, num_samples, device=t_start.device, dtype=t_start.dtype) - 0.5 + offset) / num_samples
+        u = torch.cat([torch.zeros(n_rays, 1, device=t_start.device), inner.expand(n_rays, -1) if jitter is None
+                       else inner, torch.ones(n_rays, 1, device=t_start.device)], dim=-1)
+        bin_index = (torch.searchsorted(cdf, u.contiguous(), right=True) - 1).clamp(0, num_proposal - 1)
+        frac = ((u - cdf.gather(-1, bin_index)) / pdf.gather(-1, bin_index)).clamp(0.0, 1.0)
+        edges = t_start[:, None] + (bin_index + frac) * delta_c[:, :1]
+        edges[:, 0], edges[:, -1] = t_start, torch.maximum(t_end, t_start)
+    return 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
 
 
 def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float = 1.0,
                 generator: torch.Generator | None = None) -> dict:
-    num_samples = model.config.samples_per_ray
+    config = model.config
     n_rays = origins.shape[0]
     t_start, t_end = ray_cube_bounds(origins, dirs, near, far)
+    grid = model.occupancy_for(blend)
+
+    def grid_density(t):
+        return grid.density.reshape(-1)[grid.cell_index(origins[:, None, :] + t[..., None] * dirs[:, None, :])]
+
     jitter = None
     if generator is not None:
-        jitter = torch.rand((n_rays, num_samples), generator=generator).to(origins.device)
-    t, delta = stratified_samples(t_start, t_end, num_samples, jitter)
+        jitter = torch.rand((n_rays, config.samples_per_ray - 1), generator=generator).to(origins.device)
+    t, delta = proposal_intervals(t_start, t_end, grid_density, config.samples_per_ray, config.proposal_samples,
+                                  config.proposal_uniform, jitter)
     points = origins[:, None, :] + t[..., None] * dirs[:, None, :]
     # Valid: the ray overlaps the cube, and the sample's occupancy cell may hold density.
-    mask = (t_end > t_start)[:, None] & model.occupancy_for(blend).occupied(points)
-    mask = _visible_samples(model, points, delta, mask, blend, retreat)
+    mask = (t_end > t_start)[:, None] & grid.occupied(points)
     ray_id = torch.nonzero(mask)[:, 0]
     h_sigma, h_color = model.query(points[mask], dirs[ray_id], blend=blend, retreat=retreat)
     sigma = torch.zeros(mask.shape, dtype=h_sigma.dtype, device=h_sigma.device).masked_scatter(

@@ -43,7 +43,7 @@ class TrainConfig:
     eps: float = 1e-15              # tiny eps: grid cells see rare, small gradients (as in hash-grid NeRFs)
     occupancy_every: int = 16
     occupancy_warmup: int = 16
-    occupancy_decay: float = 0.95
+    occupancy_decay: float = 0.7     # fast forgetting: the grid density also drives the proposal sampler
     occupancy_alpha: float = 0.01   # a cell is empty when one sample step there would be this transparent
 
 
@@ -100,8 +100,8 @@ class RayTrainer:
         if not params:
             raise TrainingInputError("RayTrainer: the model has no trainable parameters")
         self.optimizer = _adam(params, config)
-        # Typical sample spacing: the cube diagonal split into samples_per_ray bins.
-        spacing = 2.0 * math.sqrt(3.0) / model.config.samples_per_ray
+        # Proposal bin spacing: the cube diagonal split into proposal_samples bins.
+        spacing = 2.0 * math.sqrt(3.0) / model.config.proposal_samples
         self.sigma_threshold = -math.log(1.0 - config.occupancy_alpha) / spacing
 
     def update_occupancy(self, blend=None) -> None:
