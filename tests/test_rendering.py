@@ -156,3 +156,35 @@ def test_render_view_chunking_does_not_change_the_image():
     b = render_view(field, c2w, k, 12, 8, 0.5, 5.0, chunk=10_000)
     assert a.shape == (8, 12, 3) and a.min() >= 0 and a.max() <= 1
     torch.testing.assert_close(a, b, atol=1e-6, rtol=0)
+
+
+def test_proposal_intervals_tile_the_segment_and_follow_the_density():
+    from dualnerf.rendering import proposal_intervals
+
+    t_start, t_end = torch.tensor([0.5, 2.0]), torch.tensor([3.5, 2.6])
+
+    def slab(t):   # opaque between 1.0 and 1.2 on every ray
+        return torch.where((t > 1.0) & (t < 1.2), 200.0, 0.0)
+
+    jitter = torch.rand(2, 31, generator=torch.Generator().manual_seed(0))
+    for j in (None, jitter):
+        t, delta = proposal_intervals(t_start, t_end, slab, 32, 300, 0.1, j)
+        assert (delta >= 0).all() and (t[:, 1:] >= t[:, :-1]).all()
+        torch.testing.assert_close(delta.sum(-1), t_end - t_start)
+        torch.testing.assert_close(t[:, 0] - delta[:, 0] / 2, t_start)
+    t, _ = proposal_intervals(t_start, t_end, slab, 32, 300, 0.1)
+    # Ray 0 sees the slab: ~90% of its intervals sit on it; ray 1 (starts beyond it) stays uniform.
+    assert ((t[0] > 1.0) & (t[0] < 1.2)).sum() >= 25
+    _, delta = proposal_intervals(t_start, t_end, lambda t: torch.zeros_like(t), 32, 300, 0.1)
+    torch.testing.assert_close(delta, ((t_end - t_start) / 32)[:, None].expand(-1, 32))
+
+
+def test_non_uniform_intervals_keep_beer_lambert_exact():
+    sigma = 0.9
+    field = constant_field(sigma, (0.4, 0.4, 0.4))
+    with torch.no_grad():   # a lumpy proposal density: intervals become very uneven
+        field.occupancy.density.copy_(torch.rand(field.occupancy.density.shape,
+                                                 generator=torch.Generator().manual_seed(0)) * 50)
+    origins, dirs = axis_ray()
+    out = render_rays(field, origins, dirs, 0.0, 100.0, generator=torch.Generator().manual_seed(1))
+    assert out["opacity"].item() == pytest.approx(1 - math.exp(-2 * sigma), abs=1e-5)
