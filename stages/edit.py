@@ -18,10 +18,13 @@ Outputs:
 
 Presets. The paper (GPU, ~512 px images): iterations=15000, edit_rate=10, edit_count=1,
 rays_per_batch=4096 (PAPER_PRESET; workflows can set these). The defaults below are a scaled CPU
-preset so that the campsite ablation (6 edit variants + evaluation) fits in ~25 min on 2 cores:
-300 iterations with 2 views updated every 10 iterations (60 view updates, i.e. every training view of
-tiny ~2.7 times, of campsite ~1.4 times) and 1024 rays per batch. The blend schedule keeps the paper's
-lambda = 0.005, so the blend weights reach 0.9 w_max by iteration 300. See the report for measured costs.
+preset for the campsite ablation (6 edit variants + evaluation in ~25 min on 2 cores): 200 iterations
+with 2 views updated every 10 iterations (40 view updates: every training view of tiny ~1.8 times, of
+campsite ~1 time) and 1024 rays per batch. Measured on tiny at 128x96 with 96 samples per ray (2 shared,
+loaded cores): 0.5-0.7 s per training iteration and 2-4 s per view update (render + emulator + proxy
+encoder), i.e. 3-5 min per variant; both costs scale with pixels x samples per ray, so the ablation
+should preprocess at ~128 px and fit with <= 96 samples per ray. The blend schedule keeps the paper's
+lambda = 0.005, so the blend weights reach tanh(1) = 0.76 w_max by iteration 200.
 """
 from __future__ import annotations
 
@@ -54,7 +57,7 @@ class EditParams:
     editor_model: str = ""              # ip2p: local diffusers folder or hub id (default timbrooks/instruct-pix2pix)
     encoder: str = "proxy"              # "proxy" (weight-free, NOT CLIP) or "clip"
     encoder_model: str = ""             # clip: folder from `dualnerf models export-clip`
-    iterations: int = 300               # scaled CPU preset (paper: 15000)
+    iterations: int = 200               # scaled CPU preset (paper: 15000)
     edit_rate: int = 10                 # iterations between dataset updates (IN2N: 10)
     edit_count: int = 2                 # views per dataset update (IN2N: 1)
     rays_per_batch: int = 1024          # (paper scale: 4096)
