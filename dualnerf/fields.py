@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from dualnerf.encoding import DenseGridEncoding, spherical_harmonics
+from dualnerf.encoding import DenseGridEncoding, HashGridEncoding, spherical_harmonics
 from dualnerf.occupancy import OccupancyGrid
 
 BACKGROUNDS = ("learned", "white", "black")
@@ -42,6 +42,8 @@ class FieldConfigError(ValueError):
 class FieldConfig:
     grid_resolutions: tuple[int, ...] = (16, 32, 64, 128)
     grid_features: int = 2
+    hash_resolutions: tuple[int, ...] = ()   # extra finer levels stored in spatial-hash tables
+    hash_table_size_log2: int = 19
     hidden_width: int = 64
     geo_features: int = 15           # density-MLP outputs passed on to the colour MLP
     direction_degree: int = 4        # SH bands for the view direction (degree**2 features)
@@ -68,6 +70,7 @@ class FieldConfig:
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["grid_resolutions"] = list(self.grid_resolutions)
+        d["hash_resolutions"] = list(self.hash_resolutions)
         return d
 
     @classmethod
@@ -78,8 +81,9 @@ class FieldConfig:
             raise FieldConfigError(f"field config has unknown keys {unknown}; the model was saved by a newer "
                                    "version of dualnerf, upgrade or refit")
         d = dict(d)
-        if "grid_resolutions" in d:
-            d["grid_resolutions"] = tuple(int(r) for r in d["grid_resolutions"])
+        for key in ("grid_resolutions", "hash_resolutions"):
+            if key in d:
+                d[key] = tuple(int(r) for r in d[key])
         return cls(**d)
 
 
@@ -122,9 +126,14 @@ class RadianceField(nn.Module):
         super().__init__()
         self.config = config
         self.encoding = DenseGridEncoding(config.grid_resolutions, config.grid_features, generator)
+        self.hash_encoding = None
+        if config.hash_resolutions:
+            self.hash_encoding = HashGridEncoding(config.hash_resolutions, config.grid_features,
+                                                  config.hash_table_size_log2, generator)
         width = config.hidden_width
+        n_features = self.encoding.output_dim + (self.hash_encoding.output_dim if self.hash_encoding else 0)
         self.density_mlp = nn.Sequential(
-            _linear(self.encoding.output_dim, width, generator), nn.ReLU(),
+            _linear(n_features, width, generator), nn.ReLU(),
             _linear(width, 1 + config.geo_features, generator))
         with torch.no_grad():
             self.density_mlp[-1].bias[0] = config.density_bias
@@ -135,15 +144,20 @@ class RadianceField(nn.Module):
         self.background_head = _linear(n_dir, 3, generator) if config.background == "learned" else None
         self.occupancy = OccupancyGrid(config.occupancy_resolution)
 
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        if self.hash_encoding is None:
+            return self.encoding(x)
+        return torch.cat([self.encoding(x), self.hash_encoding(x)], dim=-1)
+
     def forward(self, x: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        out = self.density_mlp(self.encoding(x))
+        out = self.density_mlp(self.features(x))
         h_sigma, geo = out[:, 0], out[:, 1:]
         h_color = self.color_mlp(torch.cat([geo, spherical_harmonics(d, self.config.direction_degree)], dim=-1))
         return h_sigma, h_color
 
     def density_hidden(self, x: torch.Tensor) -> torch.Tensor:
         """h_sigma only (no colour branch): used by the occupancy-grid update."""
-        return self.density_mlp(self.encoding(x))[:, 0]
+        return self.density_mlp(self.features(x))[:, 0]
 
     def background_hidden(self, d: torch.Tensor) -> torch.Tensor:
         if self.background_head is not None:

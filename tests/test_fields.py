@@ -125,3 +125,26 @@ def test_bad_model_folders_raise_clear_errors(tmp_path):
     (tmp_path / "m" / "weights.pt").unlink()
     with pytest.raises(ModelFileError, match="weights.pt is missing"):
         load_model(tmp_path / "m")
+
+
+def test_hash_grid_without_collisions_matches_the_dense_grid():
+    # A table as large as the grid is indexed densely: same trilinear result as grid_sample.
+    dense = DenseGridEncoding((6,), features=3, generator=torch.Generator().manual_seed(0))
+    from dualnerf.encoding import HashGridEncoding
+
+    hashed = HashGridEncoding((6,), features=3, table_size_log2=10)
+    with torch.no_grad():
+        grid = dense.grids[0][0]                                   # (F, z, y, x)
+        hashed.tables[0].copy_(grid.permute(3, 2, 1, 0).reshape(-1, 3))   # flat index (x * R + y) * R + z
+    pts = torch.rand(200, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    torch.testing.assert_close(hashed(pts), dense(pts), atol=1e-6, rtol=0)
+
+
+def test_hashed_level_is_used_and_trainable():
+    cfg = FieldConfig(grid_resolutions=(4,), hash_resolutions=(64,), hash_table_size_log2=12, hidden_width=16)
+    field = RadianceField(cfg, torch.Generator().manual_seed(0))
+    assert field.hash_encoding.tables[0].shape == (4096, 2)
+    x, d = _inputs()
+    field(x, d)[1].sum().backward()
+    assert field.hash_encoding.tables[0].grad.abs().sum() > 0
+    assert FieldConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
