@@ -165,8 +165,7 @@ class IterativeDatasetUpdate:
         model, blend = self.model, self.blend_at(iteration)
         if not self.config.dual_field and retreat < 1.0:
             # Single-field retreat: fuse f_S and the single field with w = 1 scaled by gamma (module docstring).
-            model = DualField(self.static_field, self.model)
-            model.occupancy = self.model.occupancy
+            model = DualField(self.static_field, self.model)     # its occupancy: the union of both fields'
             blend = (1.0, 1.0)
         image = render_view(model, ds.c2w[view], ds.intrinsics[view], ds.width, ds.height, float(ds.near[view]),
                             float(ds.far[view]), blend=blend, retreat=float(retreat) if blend is not None else 1.0)
