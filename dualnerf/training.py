@@ -41,6 +41,8 @@ class TrainConfig:
     beta1: float = 0.9
     beta2: float = 0.99
     eps: float = 1e-15              # tiny eps: grid cells see rare, small gradients (as in hash-grid NeRFs)
+    lr_decay_steps: int = 0         # > 0: learning rate decays exponentially to lr_final_ratio * lr by then
+    lr_final_ratio: float = 1.0
     occupancy_every: int = 16
     occupancy_warmup: int = 16
     occupancy_decay: float = 0.7     # fast forgetting: the grid density also drives the proposal sampler
@@ -119,8 +121,17 @@ class RayTrainer:
         v = torch.randint(self.cameras.height, (n,), generator=g)
         return views, u, v
 
+    def learning_rate(self, step: int) -> float:
+        """Exponential decay; a function of the step only, so a resumed run follows the same schedule."""
+        cfg = self.config
+        if cfg.lr_decay_steps <= 0:
+            return cfg.learning_rate
+        return cfg.learning_rate * cfg.lr_final_ratio ** (min(step, cfg.lr_decay_steps) / cfg.lr_decay_steps)
+
     def step(self, step: int, blend=None, view_weights=None) -> dict:
         cfg = self.config
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.learning_rate(step)
         if step >= cfg.occupancy_warmup and step % cfg.occupancy_every == 0:
             self.update_occupancy(blend)
         views, u, v = self.sample_batch()

@@ -42,7 +42,8 @@ class FitParams:
     grid_max_resolution: int = 128
     grid_features: int = 2
     hidden_width: int = 64
-    samples_per_ray: int = 256
+    samples_per_ray: int = 48           # field evaluations per ray (placed by the occupancy-grid proposal)
+    proposal_samples: int = 256
     background: str = "learned"         # learned | white | black
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
 
@@ -88,7 +89,8 @@ class FitStage(Stage):
                                 "rerun preprocess with a larger holdout_every")
         config = FieldConfig(grid_resolutions=grid_resolutions(p.grid_levels, p.grid_max_resolution),
                              grid_features=p.grid_features, hidden_width=p.hidden_width,
-                             samples_per_ray=p.samples_per_ray, background=p.background)
+                             samples_per_ray=p.samples_per_ray, proposal_samples=p.proposal_samples,
+                             background=p.background)
         ctx.record(seed=p.seed, field_config=config.to_dict(), lpips="off (no LPIPS weights on this machine)")
         ctx.log.info("LPIPS loss is off (no LPIPS weights available); training with the RGB loss (eq. 3)")
         _FitRun(ctx, dataset, config).train_and_publish()

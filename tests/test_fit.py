@@ -19,8 +19,7 @@ from dualnerf.training import RayTrainer, TrainConfig
 SMALL = FieldConfig(grid_resolutions=(8, 16), hidden_width=16, samples_per_ray=32, occupancy_resolution=8)
 TRAIN = TrainConfig(rays_per_batch=64, occupancy_warmup=2, occupancy_every=2)
 # Fit settings small enough for CI: the tiny scene at full size, few samples and coarse grids.
-FAST_FIT = dict(rays_per_batch=512, grid_levels=3, grid_max_resolution=64, hidden_width=32, samples_per_ray=96,
-                learning_rate=2e-2)
+FAST_FIT = dict(rays_per_batch=512, grid_levels=3, grid_max_resolution=64, hidden_width=32, samples_per_ray=32)
 
 
 def random_views(n=3, h=6, w=8):
@@ -133,7 +132,7 @@ def load_model_config(out: Path) -> FieldConfig:
 
 
 KILL_PARAMS = dict(iterations=60, checkpoint_every=10, eval_every=1000, rays_per_batch=128, grid_levels=2,
-                   grid_max_resolution=16, hidden_width=16, samples_per_ray=32)
+                   grid_max_resolution=16, hidden_width=16, samples_per_ray=16, proposal_samples=64)
 
 CHILD = """
 import logging, sys
