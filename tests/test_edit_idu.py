@@ -127,6 +127,7 @@ class RecordingEditor:
         return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("annealing", [False, True])
 def test_annealing_toggle_controls_retreated_renders(small, annealing):
     idu = make_idu(small, dual_field=True, annealing=annealing, consistency=False, iterations=120, edit_rate=4)
