@@ -13,6 +13,8 @@ import dataclasses
 import functools
 import os
 import signal
+import sys
+import time
 from abc import ABC, abstractmethod
 from typing import Any
 
@@ -63,10 +65,50 @@ class SerialExecutor(Executor):
         return [(handle, execute_job(job))]
 
 
-def _worker_init(threads: int) -> None:
+def _worker_init(threads: int, parent_pid: int) -> None:
     # Before any stage imports torch/numpy: keep BLAS pools to this job's share of the cores.
     for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[name] = str(threads)
+    # A SIGTERM sent to the whole process group (a job scheduler, `kill -TERM -PGID`) unwinds the step
+    # like Ctrl-C does (lease released, checkpoints kept). A stage that imports a native library which
+    # takes SIGTERM over (glog in pycolmap) loses this, which is why the runner itself uses SIGINT.
+    signal.signal(signal.SIGTERM, _terminate_as_interrupt)
+    exit_with_parent(parent_pid)
+
+
+def _terminate_as_interrupt(signum, frame):
+    raise KeyboardInterrupt("SIGTERM")          # the runner words its record and exit status by this
+
+
+# Linux prctl option: the kernel sends the given signal to this process when its parent dies.
+PR_SET_PDEATHSIG = 1
+
+
+def exit_with_parent(parent_pid: int, poll_s: float = 1.0) -> None:
+    """Make this worker die when the runner does (even by SIGKILL), instead of computing on as an orphan.
+    SIGKILL is safe here: checkpoints are renamed into place whole, results are published by one rename,
+    and the lease of a dead process is recognised as stale. Linux: prctl(PR_SET_PDEATHSIG); elsewhere a
+    daemon thread polls the parent pid."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            armed = libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+        except (OSError, AttributeError):
+            armed = False
+        if armed:
+            if os.getppid() != parent_pid:          # the parent died before prctl took effect
+                os.kill(os.getpid(), signal.SIGKILL)
+            return
+    import threading
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(poll_s)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
 # After Ctrl-C, how long workers get to unwind from the terminal's own SIGINT before the runner sends
@@ -85,7 +127,7 @@ class ProcessPoolExecutor(Executor):
         self.threads = max(1, cpu_count() // self.slots)
         self._new_pool = lambda: concurrent.futures.ProcessPoolExecutor(
             max_workers=self.slots, mp_context=multiprocessing.get_context("spawn"),
-            initializer=_worker_init, initargs=(self.threads,))
+            initializer=_worker_init, initargs=(self.threads, os.getpid()))
         self._pool = self._new_pool()
         self._futures: set = set()
 

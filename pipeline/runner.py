@@ -2,20 +2,82 @@
 
 A step whose upstream failed is `skipped`; independent steps keep going. Ctrl-C stops cleanly:
 running steps are interrupted (their checkpoints stay in scratch, leases are released), the run
-record says `interrupted`, and KeyboardInterrupt is re-raised for the CLI.
+record says `interrupted`, and KeyboardInterrupt is re-raised for the CLI. Inside
+`terminate_as_interrupt()` SIGTERM does the same (it raises `Terminated`, a KeyboardInterrupt).
+
+With more than one step in flight, steps report progress as log lines every ~10% instead of tqdm
+bars (several processes redrawing one terminal line overwrite each other).
 """
 from __future__ import annotations
 
+import itertools
+import os
+import signal
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.dag import KeyedStep, Step, compute_keys, params_dict
 from pipeline.engine import Job, Outcome
 from pipeline.executors import Executor
-from pipeline.runrecord import RunRecord, safe_name
+from pipeline.runrecord import RUN_FILE, RunRecord, safe_name
 from pipeline.store import Store
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM turned into an exception in the main thread, so a run unwinds exactly as after Ctrl-C."""
+
+    exit_status = 143           # 128 + SIGTERM, what shells report for a process killed by SIGTERM
+
+
+@contextmanager
+def terminate_as_interrupt() -> Iterator[None]:
+    """Within this block (main thread only) SIGTERM raises `Terminated`. Without it Python dies on
+    SIGTERM at once: no clean-up, and the process-pool workers would compute on as orphans."""
+    def handler(signum, frame):
+        # The clean-up (interrupting workers, saving the run record) must not be cut short by a second
+        # SIGTERM; SIGKILL still ends everything, and workers follow their parent (executors.exit_with_parent).
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        raise Terminated("SIGTERM")
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+@contextmanager
+def _sigterm_ignored() -> Iterator[None]:
+    """While interrupted steps are wound up: the SIGTERM that often follows the first interrupt (a
+    group signal reaches the workers and the runner) must not cut the clean-up short."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def claim_run_dir(run_dir: Path) -> Path:
+    """`run_dir`, or `run_dir-2`, `-3`... if another run already owns it (two runs started within the
+    same second get the same timestamped name). Owning means having created its run.json (O_EXCL)."""
+    run_dir = Path(run_dir)
+    for n in itertools.count(1):
+        candidate = run_dir if n == 1 else run_dir.with_name(f"{run_dir.name}-{n}")
+        candidate.mkdir(parents=True, exist_ok=True)
+        try:
+            os.close(os.open(candidate / RUN_FILE, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+        except FileExistsError:
+            continue
+        return candidate
+    raise AssertionError("unreachable")
 
 
 @dataclass(frozen=True)
@@ -59,9 +121,12 @@ class RunResult:
 def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Store, executor: Executor,
               run_dir: Path, quiet: bool = False) -> RunResult:
     """Run `steps` (and everything upstream of them) and return where each result was published.
-    Raises a UserError before anything runs if a step is invalid. Shuts the executor down at the end."""
+    Raises a UserError before anything runs if a step is invalid. Shuts the executor down at the end.
+    The record goes to `run_dir` (or `run_dir-N` if another run owns that folder; see result.run_file)."""
     keyed = compute_keys(steps, registry=registry, store=store)
-    record = RunRecord(run_dir, store.root)
+    record = RunRecord(claim_run_dir(run_dir), store.root)
+    # Several steps at once: periodic log lines, not tqdm bars fighting over one terminal line.
+    step_quiet = quiet or executor.slots > 1
     by_key: dict[str, list[KeyedStep]] = {}
     for k in keyed.values():
         by_key.setdefault(k.key, []).append(k)
@@ -82,7 +147,7 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
         jobs[key] = Job(key=key, stage_ref=registry[first.step.stage],
                         params=params_dict(first.params), inputs=inputs, key_inputs=first.key_inputs,
                         label=first.label, log_path=str(log_path), cache_root=str(store.root),
-                        threads=executor.threads, quiet=quiet, lease_ttl_s=store.lease_ttl_s)
+                        threads=executor.threads, quiet=step_quiet, lease_ttl_s=store.lease_ttl_s)
         deps[key] = {keyed[up].key for up in first.upstream.values()}
         for k in group:
             described = {name: {"step": keyed[up].label, "key": keyed[up].key} for name, up in k.upstream.items()}
@@ -135,13 +200,19 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
                                   user_error=outcome.user_error, finished=outcome.finished or time.time(),
                                   duration_s=round(outcome.duration_s, 3))
             record.save()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         interrupted = True
-        executor.shutdown(interrupted=True)
-        for key in in_flight.values():
-            record.update_key(key, status="interrupted", error="interrupted (Ctrl-C); rerun to resume")
-        record.data.update(status="interrupted", finished=time.time())
-        record.save()
+        # A worker's KeyboardInterrupt("SIGTERM") (executors._terminate_as_interrupt) can arrive before
+        # the runner's own: a signal to the process group reaches everyone.
+        why = "SIGTERM" if exc.args[:1] == ("SIGTERM",) else "Ctrl-C"
+        with _sigterm_ignored():
+            executor.shutdown(interrupted=True)
+            for key in in_flight.values():
+                record.update_key(key, status="interrupted", error=f"interrupted ({why}); rerun to resume")
+            record.data.update(status="interrupted", finished=time.time())
+            record.save()
+        if why == "SIGTERM" and not isinstance(exc, Terminated):
+            raise Terminated("SIGTERM") from None
         raise
     finally:
         if not interrupted:

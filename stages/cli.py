@@ -2,7 +2,8 @@
 `register(subparsers)` and importing nothing heavy at module level, so `dualnerf --help` is instant.
 
 Exit status: 0 success; 1 internal error (traceback printed) or failed steps; 2 user error (a message
-naming what to fix, no traceback; see pipeline.errors for the rule); 130 interrupted (Ctrl-C).
+naming what to fix, no traceback; see pipeline.errors for the rule); 130 interrupted (Ctrl-C); 143
+terminated (SIGTERM: stops as cleanly as Ctrl-C, see pipeline.runner.terminate_as_interrupt).
 """
 from __future__ import annotations
 
@@ -58,9 +59,15 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     from pipeline.errors import is_user_error
+    from pipeline.runner import Terminated, terminate_as_interrupt
 
     try:
-        return int(handler(args) or 0)
+        with terminate_as_interrupt():
+            return int(handler(args) or 0)
+    except Terminated:
+        print("dualnerf: terminated (SIGTERM); checkpoints are kept, rerun the same command to resume.",
+              file=sys.stderr)
+        return Terminated.exit_status
     except KeyboardInterrupt:
         print("dualnerf: interrupted; checkpoints are kept, rerun the same command to resume.", file=sys.stderr)
         return 130
