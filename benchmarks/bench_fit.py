@@ -6,6 +6,7 @@ dual/single step time <= 1.6.
     python -m benchmarks.bench_fit                      # generates campsite into a temp folder
     DUALNERF_BENCH_DATASET=/path/to/dataset python -m benchmarks.bench_fit
     DUALNERF_BENCH_SECONDS=60 DUALNERF_BENCH_THREADS=1 ...   (shorter / other thread count)
+    DUALNERF_BENCH_FIELD='{"samples_per_ray": 24}' ...        (FieldConfig overrides, JSON)
 
 Timings depend on what else runs on the machine; the script prints the load average next to them.
 """
@@ -45,6 +46,8 @@ def _heldout_psnr(model, ds, views) -> float:
 
 
 def fit_curve(ds, seconds: float, eval_every_s: float = 30.0):
+    import json
+
     import torch
 
     from dualnerf.cameras import Cameras
@@ -52,7 +55,9 @@ def fit_curve(ds, seconds: float, eval_every_s: float = 30.0):
     from dualnerf.training import RayTrainer, TrainConfig
 
     g = torch.Generator().manual_seed(0)
-    model = RadianceField(FieldConfig(), g)
+    overrides = json.loads(os.environ.get("DUALNERF_BENCH_FIELD", "{}"))
+    model = RadianceField(FieldConfig.from_dict({**FieldConfig().to_dict(), **overrides}), g)
+    print(f"  field: {model.config}")
     images = torch.from_numpy(ds.images).float() / 255.0
     trainer = RayTrainer(model, images, Cameras.from_dataset(ds), TrainConfig(), g, ds.indices("train"))
     heldout = ds.indices("heldout")

@@ -30,7 +30,6 @@ import torch
 from dualnerf.fields import decode_color, decode_density
 
 
-
 def ray_cube_bounds(origins, dirs, near, far):
     """Overlap of [near, far] with the ray's segment inside [-1,1]^3 (slab test); empty when t_end <= t_start."""
     safe = torch.where(dirs.abs() < 1e-9, torch.full_like(dirs, 1e-9), dirs)

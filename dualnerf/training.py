@@ -72,7 +72,7 @@ def normalised_view_weights(scores: torch.Tensor, train_indices: Sequence[int]) 
 
 
 def _adam(params, config: TrainConfig) -> torch.optim.Adam:
-    kwargs = dict(lr=config.learning_rate, betas=(config.beta1, config.beta2), eps=config.eps)
+    kwargs = {"lr": config.learning_rate, "betas": (config.beta1, config.beta2), "eps": config.eps}
     try:
         return torch.optim.Adam(params, fused=True, **kwargs)
     except (RuntimeError, TypeError):       # fused kernels are missing for some device/dtype combinations

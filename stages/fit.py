@@ -33,6 +33,7 @@ class FitParams:
     iterations: int = 2000
     rays_per_batch: int = 1024
     learning_rate: float = 1e-2
+    lr_final_ratio: float = 0.1         # exponential decay to learning_rate * lr_final_ratio at the last step
     seed: int = 0
     device: str = "cpu"                 # "cpu" or "cuda"
     checkpoint_every: int = 250
@@ -57,7 +58,7 @@ def grid_resolutions(levels: int, max_resolution: int) -> tuple[int, ...]:
     if levels == 1:
         return (max_resolution,)
     growth = (max_resolution / base) ** (1.0 / (levels - 1))
-    return tuple(int(round(base * growth ** i)) for i in range(levels))
+    return tuple(round(base * growth ** i) for i in range(levels))
 
 
 class FitStage(Stage):
@@ -113,7 +114,8 @@ class _FitRun:
         self.model = RadianceField(config, generator).to(self.device)
         images = torch.from_numpy(dataset.images).to(self.device).float() / 255.0
         self.trainer = RayTrainer(self.model, images, Cameras.from_dataset(dataset), TrainConfig(
-            rays_per_batch=p.rays_per_batch, learning_rate=p.learning_rate), generator, dataset.indices("train"))
+            rays_per_batch=p.rays_per_batch, learning_rate=p.learning_rate, lr_decay_steps=p.iterations,
+            lr_final_ratio=p.lr_final_ratio), generator, dataset.indices("train"))
         heldout = dataset.indices("heldout")
         self.eval_split = "heldout" if len(heldout) else "train"
         self.eval_views = heldout if len(heldout) else dataset.indices("train")[:4]

@@ -19,7 +19,8 @@ from dualnerf.training import RayTrainer, TrainConfig
 SMALL = FieldConfig(grid_resolutions=(8, 16), hidden_width=16, samples_per_ray=32, occupancy_resolution=8)
 TRAIN = TrainConfig(rays_per_batch=64, occupancy_warmup=2, occupancy_every=2)
 # Fit settings small enough for CI: the tiny scene at full size, few samples and coarse grids.
-FAST_FIT = dict(rays_per_batch=512, grid_levels=3, grid_max_resolution=64, hidden_width=32, samples_per_ray=32)
+FAST_FIT = {"rays_per_batch": 512, "grid_levels": 3, "grid_max_resolution": 64, "hidden_width": 32,
+            "samples_per_ray": 32}
 
 
 def random_views(n=3, h=6, w=8):
@@ -131,8 +132,8 @@ def load_model_config(out: Path) -> FieldConfig:
     return FieldConfig.from_dict(json.loads((out / "model" / "model.json").read_text())["field_config"])
 
 
-KILL_PARAMS = dict(iterations=60, checkpoint_every=10, eval_every=1000, rays_per_batch=128, grid_levels=2,
-                   grid_max_resolution=16, hidden_width=16, samples_per_ray=16, proposal_samples=64)
+KILL_PARAMS = {"iterations": 60, "checkpoint_every": 10, "eval_every": 1000, "rays_per_batch": 128, "grid_levels": 2,
+               "grid_max_resolution": 16, "hidden_width": 16, "samples_per_ray": 16, "proposal_samples": 64}
 
 CHILD = """
 import logging, sys
@@ -198,3 +199,17 @@ def test_grid_resolutions():
     assert grid_resolutions(3, 64) == (16, 32, 64)
     assert grid_resolutions(1, 48) == (48,)
     assert grid_resolutions(2, 8) == (8, 8)
+
+
+def test_learning_rate_decay_schedule():
+    g = torch.Generator().manual_seed(0)
+    images, cams = random_views()
+    cfg = TrainConfig(rays_per_batch=16, learning_rate=0.02, lr_decay_steps=100, lr_final_ratio=0.1)
+    trainer = RayTrainer(RadianceField(SMALL, g), images, cams, cfg, g)
+    assert trainer.learning_rate(0) == pytest.approx(0.02)
+    assert trainer.learning_rate(50) == pytest.approx(0.02 * 0.1 ** 0.5)
+    assert trainer.learning_rate(100) == pytest.approx(0.002)
+    assert trainer.learning_rate(1000) == pytest.approx(0.002)
+    trainer.step(50)
+    assert trainer.optimizer.param_groups[0]["lr"] == pytest.approx(0.02 * 0.1 ** 0.5)
+    assert make_trainer().learning_rate(10**6) == TRAIN.learning_rate      # no decay by default

@@ -111,7 +111,7 @@ def test_pixel_rays_follow_opencv_convention():
 
 
 def test_view_rays_row_major():
-    o, d = view_rays(np.eye(4), np.array([10.0, 10.0, 2.0, 1.5]), 4, 3)
+    _, d = view_rays(np.eye(4), np.array([10.0, 10.0, 2.0, 1.5]), 4, 3)
     assert d.shape == (12, 3)
     _, d_one = pixel_rays(torch.eye(4)[None], torch.tensor([[10.0, 10.0, 2.0, 1.5]]),
                           torch.tensor([3]), torch.tensor([1]))
