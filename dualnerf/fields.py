@@ -10,6 +10,12 @@ API:
     decode_density(h_sigma) -> sigma >= 0        D_sigma: truncated exponential
     decode_color(h_color) -> rgb in (0,1)        D_c: sigmoid
 
+Architecture (sized for a 2-core CPU): dense trilinear feature grids (16^3..128^3 by default, plus
+optional hashed finer levels) -> density MLP (1 hidden layer) giving h_sigma and geometry features ->
+colour MLP on those and the view direction's SH features giving h_color. FieldConfig also carries the
+render settings saved with a model (samples_per_ray, proposal_samples, proposal_uniform,
+occupancy_resolution; see dualnerf.rendering).
+
 Hidden features are *pre-activation* values: the paper's decoders D_sigma and D_c are plain activation
 functions (Sec. 4.4), so fusing two fields (eqs. 4-5, `dualnerf.dual_field`) happens on these values.
 

@@ -10,6 +10,7 @@ API:
     rgb_loss(pred (R,3), target (R,3), ray_weights (R,) | None) -> scalar
     normalised_view_weights(scores (N,), train_indices) -> (N,)  S_i / mean(S over training views)
 
+The learning rate is constant unless lr_decay_steps > 0 (exponential decay, a function of `step` only).
 One `step` draws `rays_per_batch` random (training view, pixel) pairs from the seeded CPU generator,
 renders them with jittered samples, and takes one Adam step on the parameters that require gradients
 (so a DualField trains only f_D). Every `occupancy_every` steps (after `occupancy_warmup`) it first
