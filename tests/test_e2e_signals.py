@@ -129,7 +129,7 @@ def test_sigterm_stops_like_ctrl_c(tmp_path, target):
     # ...and the rerun resumes from the kept checkpoint instead of starting over
     counted_before = len(trace.read_text().splitlines())
     rerun = start_driver(tmp_path, "rerun", {"n": 400, "trace": str(trace)})
-    out, err = rerun.communicate(timeout=120)
+    _, err = rerun.communicate(timeout=120)
     assert rerun.returncode == 0, err
     resumed = trace.read_text().splitlines()[counted_before].split()
     assert resumed[1] == "resume" and int(resumed[2]) >= counted_before - 2

@@ -81,12 +81,10 @@ class Place:
         # Output goes to files, not pipes: a pipe held open by a killed run's leftovers would block reading.
         self.root.mkdir(parents=True, exist_ok=True)
         n = len(list(self.root.glob("out-*.txt")))
-        out, err = open(self.root / f"out-{n}.txt", "w"), open(self.root / f"err-{n}.txt", "w")
-        proc = subprocess.Popen(self.command(*extra, **kwargs), cwd=ROOT, env=env, stdout=out, stderr=err,
-                                text=True, start_new_session=True)
+        with open(self.root / f"out-{n}.txt", "w") as out, open(self.root / f"err-{n}.txt", "w") as err:
+            proc = subprocess.Popen(self.command(*extra, **kwargs), cwd=ROOT, env=env, stdout=out, stderr=err,
+                                    text=True, start_new_session=True)
         proc.out_path, proc.err_path = out.name, err.name
-        out.close()
-        err.close()
         STARTED.append(proc)
         return proc
 
@@ -288,7 +286,7 @@ def test_failing_cell_does_not_stop_independent_cells(reference, tmp_path):
     place = Place(tmp_path)
     place.seed_from(reference, [SCENE, PREPROCESS, FIT])
     missing = tmp_path / "no-such-ip2p-model"
-    code, out, err, _ = place.run("--set", "edit.editor=ip2p", "--set", f"edit.editor_model={missing}")
+    code, _, err, _ = place.run("--set", "edit.editor=ip2p", "--set", f"edit.editor_model={missing}")
     assert code == 1
     status = {s["label"]: s for s in place.records()[-1]["steps"]}
     assert status[ORIGINAL]["status"] == "done"                 # computed here, not seeded
