@@ -213,3 +213,29 @@ def test_learning_rate_decay_schedule():
     trainer.step(50)
     assert trainer.optimizer.param_groups[0]["lr"] == pytest.approx(0.02 * 0.1 ** 0.5)
     assert make_trainer().learning_rate(10**6) == TRAIN.learning_rate      # no decay by default
+
+
+@pytest.mark.slow
+def test_fit_through_the_engine_and_cache(tmp_path):
+    from pipeline.dag import Step
+    from pipeline.executors import SerialExecutor
+    from pipeline.runner import run_steps
+    from pipeline.store import Store
+    from stages import STAGES
+
+    scene = Step("scene", {"name": "tiny", "n_views": 5, "width": 40, "height": 30}, label="scene")
+    prep = Step("preprocess", {"method": "nerfstudio", "holdout_every": 4}, {"scene": scene}, label="prep")
+    fit_params = {**KILL_PARAMS, "iterations": 20, "checkpoint_every": 5}
+    fit = Step("fit", fit_params, {"dataset": prep}, label="fit")
+    store = Store(tmp_path / "cache")
+
+    def run():
+        return run_steps([fit], registry=STAGES, store=store, executor=SerialExecutor(threads=1),
+                         run_dir=tmp_path / "runs", quiet=True)
+
+    result = run()
+    assert result.ok, result.summary()
+    out = result.results[fit]
+    assert (out / "model" / "model.json").is_file() and (out / "metrics.json").is_file()
+    again = run()                                   # same key: served from the cache, same folder
+    assert again.status[fit] == "cached" and again.results[fit] == out
