@@ -97,12 +97,30 @@ def worker_pid(trace: Path) -> int | None:
     return int(lines[0].split()[0]) if lines else None
 
 
-def assert_stopped_cleanly(tmp_path: Path, proc: subprocess.Popen, worker: int, *, expect_lease_gone: bool = True):
+def process_tree(root: int) -> list[int]:
+    """`root` and all its descendants, from /proc (children found by their parent pid)."""
+    parents: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        parents.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    tree, todo = [], [root]
+    while todo:
+        pid = todo.pop()
+        tree.append(pid)
+        todo.extend(parents.get(pid, []))
+    return tree
+
+
+def assert_stopped_cleanly(tmp_path: Path, proc: subprocess.Popen, tree: list[int], *,
+                           expect_lease_gone: bool = True):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 143, err
     assert err.strip().splitlines()[-1] == "driver: terminated"
     assert "Traceback" not in err
-    wait_for(lambda: not pid_alive(worker), timeout=10, what=f"worker {worker} to exit")
+    wait_for(lambda: not any(pid_alive(pid) for pid in tree), timeout=10, what=f"no process of {tree} left")
     store = Store(tmp_path / "cache")
     if expect_lease_gone:
         assert not list(store.leases.glob("*.lease"))                 # released, not merely stale
@@ -120,12 +138,13 @@ def test_sigterm_stops_like_ctrl_c(tmp_path, target):
     proc = start_driver(tmp_path, "t", {"n": 400, "trace": str(trace), "step_seconds": 0.05})
     worker = wait_for(lambda: len(trace.read_text().splitlines()) >= 3 and worker_pid(trace) if trace.exists()
                       else None, what="3 counted steps")
-    assert worker != proc.pid
+    tree = process_tree(proc.pid)
+    assert worker != proc.pid and worker in tree
     if target == "runner":
         proc.send_signal(signal.SIGTERM)            # `kill PID`: only the runner hears it
     else:
         os.killpg(proc.pid, signal.SIGTERM)         # a scheduler stopping the job: everyone hears it
-    assert_stopped_cleanly(tmp_path, proc, worker)
+    assert_stopped_cleanly(tmp_path, proc, tree)
     # ...and the rerun resumes from the kept checkpoint instead of starting over
     counted_before = len(trace.read_text().splitlines())
     rerun = start_driver(tmp_path, "rerun", {"n": 400, "trace": str(trace)})
@@ -145,8 +164,10 @@ def test_group_sigterm_when_the_worker_lost_its_sigterm_handler(tmp_path):
     proc = start_driver(tmp_path, "t", params)
     worker = wait_for(lambda: len(trace.read_text().splitlines()) >= 3 and worker_pid(trace) if trace.exists()
                       else None, what="3 counted steps")
+    tree = process_tree(proc.pid)
+    assert worker in tree
     os.killpg(proc.pid, signal.SIGTERM)
-    assert_stopped_cleanly(tmp_path, proc, worker, expect_lease_gone=False)
+    assert_stopped_cleanly(tmp_path, proc, tree, expect_lease_gone=False)
     rerun = start_driver(tmp_path, "rerun", {**params, "step_seconds": 0.0})
     _, err = rerun.communicate(timeout=120)
     assert rerun.returncode == 0, err
@@ -158,9 +179,11 @@ def test_workers_follow_a_sigkilled_runner(tmp_path):
     proc = start_driver(tmp_path, "t", {"n": 400, "trace": str(trace), "step_seconds": 0.05})
     worker = wait_for(lambda: len(trace.read_text().splitlines()) >= 3 and worker_pid(trace) if trace.exists()
                       else None, what="3 counted steps")
+    tree = process_tree(proc.pid)
+    assert worker in tree
     proc.send_signal(signal.SIGKILL)                # only the runner: nobody tells the worker
     proc.wait(timeout=30)                           # not communicate(): an orphan would hold the pipes open
-    wait_for(lambda: not pid_alive(worker), timeout=10, what=f"orphaned worker {worker} to exit")
+    wait_for(lambda: not any(pid_alive(pid) for pid in tree), timeout=10, what=f"orphans of {tree} to exit")
     # the orphan did not count on after its parent died (give it the time of a few steps to prove it)
     counted = len(trace.read_text().splitlines())
     time.sleep(0.3)

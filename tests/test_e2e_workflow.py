@@ -29,6 +29,7 @@ import pytest
 
 from pipeline.lease import pid_alive
 from pipeline.store import MANIFEST
+from tests.test_e2e_signals import process_tree
 
 ROOT = Path(__file__).resolve().parents[1]
 WORKFLOW = "workflows/smoke.toml"
@@ -174,23 +175,6 @@ def lease_holder(place: Place, key: str) -> int | None:
         return None
 
 
-def process_tree(root: int) -> list[int]:
-    """`root` and all its descendants, from /proc (children found by their parent pid)."""
-    parents: dict[int, list[int]] = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except (OSError, IndexError):
-            continue
-        parents.setdefault(int(fields[1]), []).append(int(stat.parent.name))
-    tree, todo = [], [root]
-    while todo:
-        pid = todo.pop()
-        tree.append(pid)
-        todo.extend(parents.get(pid, []))
-    return tree
-
-
 def computed_keys(place: Place) -> list[tuple[str, int]]:
     """(key, pid) of every computation started, over all of this place's step logs (one per attempt)."""
     pattern = re.compile(r"=== computing .* \(([0-9a-f]{64})\) on \S+ pid (\d+)")
@@ -209,12 +193,14 @@ def test_interrupted_and_resumed_run_equals_uninterrupted(reference, tmp_path):
     wait_for(lambda: checkpoints(place, keys[FIT]), what="a fit checkpoint", proc=proc)
     worker = lease_holder(place, keys[FIT])
     assert worker is not None and worker != proc.pid
+    tree = process_tree(proc.pid)
+    assert worker in tree
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=60) == 143
     err_lines = Path(proc.err_path).read_text().strip().splitlines()
     assert err_lines[-1].startswith("dualnerf: terminated (SIGTERM); checkpoints are kept")
     assert "Traceback" not in Path(proc.err_path).read_text()
-    wait_for(lambda: not pid_alive(worker), timeout=10, what="the pool worker to exit")
+    wait_for(lambda: not any(pid_alive(pid) for pid in tree), timeout=10, what="no process of the run left")
     assert not list((place.cache / "leases").glob("*.lease"))
     assert checkpoints(place, keys[FIT])
     record = place.records()[-1]
