@@ -72,3 +72,18 @@ def test_bad_toml_names_file_and_line(tmp_path):
     bad.write_text('[workflow]\nscene = "tiny"\nseeds = [0,\n')
     with pytest.raises(WorkflowError, match=r"bad\.toml.*line"):
         load_workflow(bad)
+
+
+@pytest.mark.parametrize("workflow", sorted((ROOT / "workflows").glob("*.toml")), ids=lambda p: p.name)
+def test_every_shipped_workflow_expands_and_its_params_validate(workflow, tmp_path):
+    """Keying builds every step's frozen params dataclass, so a mistyped or unknown stage parameter in a
+    shipped workflow fails here instead of minutes into a user's run."""
+    from pipeline.dag import compute_keys
+    from pipeline.store import Store
+    from stages import STAGES
+
+    wf = load_workflow(workflow, ["scenes_dir=/nonexistent"])
+    keyed = compute_keys(wf.steps, registry=STAGES, store=Store(tmp_path / "cache"))
+    assert {step.stage for step in keyed} == {"scene", "preprocess", "fit", "edit", "evaluate"}
+    assert len([s for s in keyed if s.stage == "fit"]) == 1
+    assert len(wf.cells) == 1 + len(wf.settings["variants"]) * len(wf.settings.get("seeds", [0]))
