@@ -7,6 +7,7 @@ dual/single step time <= 1.6.
     DUALNERF_BENCH_DATASET=/path/to/dataset python -m benchmarks.bench_fit
     DUALNERF_BENCH_SECONDS=60 DUALNERF_BENCH_THREADS=1 ...   (shorter / other thread count)
     DUALNERF_BENCH_FIELD='{"samples_per_ray": 24}' ...        (FieldConfig overrides, JSON)
+    DUALNERF_BENCH_TRAIN='{"distortion_weight": 0.01}' ...    (TrainConfig overrides, JSON)
 
 Timings depend on what else runs on the machine; the script prints the load average next to them.
 """
@@ -59,7 +60,11 @@ def fit_curve(ds, seconds: float, eval_every_s: float = 30.0):
     model = RadianceField(FieldConfig.from_dict({**FieldConfig().to_dict(), **overrides}), g)
     print(f"  field: {model.config}")
     images = torch.from_numpy(ds.images).float() / 255.0
-    trainer = RayTrainer(model, images, Cameras.from_dataset(ds), TrainConfig(), g, ds.indices("train"))
+    train_overrides = json.loads(os.environ.get("DUALNERF_BENCH_TRAIN", "{}"))
+    trainer = RayTrainer(model, images, Cameras.from_dataset(ds), TrainConfig(**train_overrides), g,
+                         ds.indices("train"))
+    if train_overrides:
+        print(f"  training: {trainer.config}")
     heldout = ds.indices("heldout")
     curve, train_time, samples, step, next_eval = [], 0.0, 0, 0, eval_every_s
     while train_time < seconds:

@@ -48,6 +48,7 @@ class TrainConfig:
     occupancy_warmup: int = 16
     occupancy_decay: float = 0.7     # fast forgetting: the grid density also drives the proposal sampler
     occupancy_alpha: float = 0.01   # a cell is empty when one sample step there would be this transparent
+    distortion_weight: float = 0.0  # > 0: adds this x the mip-NeRF 360 distortion loss (against floaters)
 
 
 class TrainingInputError(ValueError):
@@ -141,11 +142,13 @@ class RayTrainer:
         cams = self.cameras
         origins, dirs = pixel_rays(cams.c2w[views_d], cams.intrinsics[views_d], u_d, v_d)
         result = render_rays(self.model, origins, dirs, cams.near[views_d], cams.far[views_d],
-                             blend=blend, generator=self.generator)
+                             blend=blend, generator=self.generator, with_distortion=cfg.distortion_weight > 0)
         ray_weights = None
         if view_weights is not None:
             ray_weights = normalised_view_weights(view_weights, self.train_indices.tolist()).to(self.device)[views_d]
         loss = rgb_loss(result["color"], target, ray_weights)
+        if cfg.distortion_weight > 0:
+            loss = loss + cfg.distortion_weight * result["distortion"].mean()
         self.optimizer.zero_grad(set_to_none=True)
         if loss.requires_grad:
             loss.backward()

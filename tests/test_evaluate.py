@@ -188,7 +188,7 @@ def test_bad_params_are_explained(tmp_path, tiny_dataset, models):
 
 @pytest.mark.slow
 def test_edited_row_reuses_original_renders_with_identical_results(tmp_path, tiny_dataset, models):
-    params = dict(n_frames=3, edit_id="snow", path_scale=0.5)
+    params = {"n_frames": 3, "edit_id": "snow", "path_scale": 0.5}
     original = run_evaluate(tmp_path, tiny_dataset, models, edited=False, out="original", **params)
     rendered = run_evaluate(tmp_path, tiny_dataset, models, edited=True, out="rendered", **params)
     ctx = StepContext(key="test", params=EvaluateParams(**params),

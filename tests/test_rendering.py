@@ -7,7 +7,7 @@ import torch
 
 from dualnerf.cameras import pixel_rays, view_rays
 from dualnerf.fields import FieldConfig, RadianceField
-from dualnerf.rendering import composite, ray_cube_bounds, render_rays, render_view
+from dualnerf.rendering import composite, distortion, ray_cube_bounds, render_rays, render_view
 
 DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(
     not torch.cuda.is_available(), reason="no CUDA device")])]
@@ -188,3 +188,42 @@ def test_non_uniform_intervals_keep_beer_lambert_exact():
     origins, dirs = axis_ray()
     out = render_rays(field, origins, dirs, 0.0, 100.0, generator=torch.Generator().manual_seed(1))
     assert out["opacity"].item() == pytest.approx(1 - math.exp(-2 * sigma), abs=1e-5)
+
+
+def test_distortion_matches_the_double_sum_and_prefers_one_compact_peak():
+    g = torch.Generator().manual_seed(3)
+    edges = torch.sort(torch.rand(5, 9, generator=g) * 4.0, dim=-1).values
+    t, delta = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
+    weights = torch.rand(5, 8, generator=g) / 8
+    length = torch.full((5,), 4.0)
+    s, ds = t / 4.0, delta / 4.0
+    brute = ((weights[:, :, None] * weights[:, None, :] * (s[:, :, None] - s[:, None, :]).abs()).sum((1, 2))
+             + (weights ** 2 * ds).sum(-1) / 3)
+    assert torch.allclose(distortion(weights, t, delta, length), brute, atol=1e-6)
+    # All weight in one interval of normalised length 0.1: only the self term, 0.1 / 3.
+    one = torch.zeros(1, 10)
+    one[0, 4] = 1.0
+    grid_t, grid_delta = (torch.arange(10.0)[None] + 0.5) * 0.1, torch.full((1, 10), 0.1)
+    assert float(distortion(one, grid_t, grid_delta, torch.ones(1))) == pytest.approx(0.1 / 3)
+    # The same total weight split between the two ends of the ray (haze / a floater) costs far more.
+    split = torch.zeros(1, 10)
+    split[0, 0] = split[0, 9] = 0.5
+    assert float(distortion(split, grid_t, grid_delta, torch.ones(1))) > 5 * (0.1 / 3)
+
+
+def test_distortion_weight_enters_the_training_loss():
+    from dualnerf.cameras import Cameras
+    from dualnerf.training import RayTrainer, TrainConfig
+
+    field = constant_field(5.0, (0.4, 0.5, 0.6))
+    cams = Cameras(c2w=torch.eye(4)[None].clone(), intrinsics=torch.tensor([[8.0, 8.0, 4.0, 4.0]]),
+                   width=8, height=8, near=torch.tensor([0.1]), far=torch.tensor([4.0]))
+    cams.c2w[0, :3, 3] = torch.tensor([0.0, 0.0, -3.0])
+    images = torch.full((1, 8, 8, 3), 0.5)
+    losses = {}
+    for weight in (0.0, 1.0):
+        trainer = RayTrainer(field, images, cams, TrainConfig(distortion_weight=weight, occupancy_warmup=10**9),
+                             torch.Generator().manual_seed(0))
+        losses[weight] = trainer.step(0)["loss"]
+        field.load_state_dict(constant_field(5.0, (0.4, 0.5, 0.6)).state_dict())
+    assert losses[1.0] > losses[0.0]
