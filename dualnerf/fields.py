@@ -59,6 +59,13 @@ class FieldConfig:
     samples_per_ray: int = 48        # field evaluations per ray (intervals placed by the proposal)
     proposal_samples: int = 256      # occupancy-grid lookups per ray for the proposal (cheap)
     proposal_uniform: float = 0.15   # share of the intervals spread uniformly along the ray
+    # The proposal renders the occupancy grid's density scaled by this. The grid keeps a decayed running
+    # *max* of sampled densities (right for the skip mask, biased high for a proposal): unscaled, the
+    # first cell holding a density spike takes all intervals and the true surface behind it gets only the
+    # uniform share. Scaled down, the intervals spread over the first few occupied cells along the ray.
+    # Measured on campsite (bench_fit, 60 s): held-out PSNR 21.4 dB at 1, 23.1 at 0.1, 24.4 at 0.02,
+    # 25.3 at 0.005, 25.0 at 0.001.
+    proposal_density_scale: float = 0.005
     occupancy_resolution: int = 64
 
     def __post_init__(self):
@@ -66,6 +73,8 @@ class FieldConfig:
             raise FieldConfigError(f"FieldConfig.background must be one of {BACKGROUNDS}, got {self.background!r}")
         if not self.grid_resolutions or min(self.grid_resolutions) < 2:
             raise FieldConfigError(f"FieldConfig.grid_resolutions needs values >= 2, got {self.grid_resolutions}")
+        if not self.proposal_density_scale > 0.0:
+            raise FieldConfigError(f"FieldConfig.proposal_density_scale must be > 0, got {self.proposal_density_scale}")
         if not 0.0 < self.proposal_uniform <= 1.0:
             raise FieldConfigError(f"FieldConfig.proposal_uniform must be in (0, 1], got {self.proposal_uniform}")
         for name in ("grid_features", "hidden_width", "geo_features", "samples_per_ray", "proposal_samples",

@@ -17,7 +17,8 @@ static/single field, blend=(w_density, w_color) the fused dual field (see dualne
 
 Sampling: the field lives in the normalised cube [-1,1]^3, so each ray is clipped to the overlap of
 [near, far] with the cube. That segment is cut into `samples_per_ray` intervals by `proposal_intervals`:
-fine where the occupancy grid's density estimate says the visible surface is, coarse elsewhere (jittered
+fine where the occupancy grid's density estimate (scaled by
+FieldConfig.proposal_density_scale) says the visible surface is, coarse elsewhere (jittered
 in training, deterministic when rendering). The field is evaluated at interval midpoints; midpoints in
 empty occupancy cells are not evaluated and get sigma = 0.
 
@@ -112,7 +113,8 @@ def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float =
     grid = model.occupancy_for(blend)
 
     def grid_density(t):
-        return grid.density.reshape(-1)[grid.cell_index(origins[:, None, :] + t[..., None] * dirs[:, None, :])]
+        cells = grid.cell_index(origins[:, None, :] + t[..., None] * dirs[:, None, :])
+        return config.proposal_density_scale * grid.density.reshape(-1)[cells]
 
     jitter = None
     if generator is not None:

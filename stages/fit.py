@@ -63,7 +63,7 @@ def grid_resolutions(levels: int, max_resolution: int) -> tuple[int, ...]:
 
 class FitStage(Stage):
     name = "fit"
-    version = "1"
+    version = "2"           # 2: proposal density scale (a different sampler, so different fields)
     Params = FitParams
     upstream = ("dataset",)
     resources = Resources(cpus=2, gpus=0, memory_gb=3)
