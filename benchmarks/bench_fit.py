@@ -56,11 +56,12 @@ def fit_curve(ds, seconds: float, eval_every_s: float = 30.0):
     from dualnerf.cameras import Cameras
     from dualnerf.fields import FieldConfig, RadianceField
     from dualnerf.training import RayTrainer, TrainConfig
-    from stages.fit import FitParams
+    from stages.fit import FitParams, field_config
 
     g = torch.Generator().manual_seed(0)
     overrides = json.loads(os.environ.get("DUALNERF_BENCH_FIELD", "{}"))
-    model = RadianceField(FieldConfig.from_dict({**FieldConfig().to_dict(), **overrides}), g)
+    # The field the fit stage trains with its default parameters, plus the overrides.
+    model = RadianceField(FieldConfig.from_dict({**field_config(FitParams()).to_dict(), **overrides}), g)
     print(f"  field: {model.config}")
     images = torch.from_numpy(ds.images).float() / 255.0
     train_overrides = json.loads(os.environ.get("DUALNERF_BENCH_TRAIN", "{}"))

@@ -7,7 +7,8 @@ API:
         -> (t (R,S) interval midpoints, delta (R,S) interval lengths)
     composite(sigma (R,S), delta (R,S)) -> weights (R,S)        w_i = T_i (1 - exp(-delta_i sigma_i))
     render_rays(model, origins, dirs, near, far, *, blend=None, retreat=1.0, generator=None,
-                with_distortion=False) -> dict(color (R,3), opacity (R,), evaluated: int[, distortion (R,)])
+                with_distortion=False, samples_per_ray=None)
+        -> dict(color (R,3), opacity (R,), evaluated: int[, distortion (R,)])
     distortion(weights (R,S), t (R,S), delta (R,S), length (R,)) -> (R,)   mip-NeRF 360 distortion loss
     render_view(model, c2w, intrinsics, width, height, near, far, *, blend=None, retreat=1.0,
                 chunk=8192) -> (H,W,3) float tensor in [0,1] (CPU)
@@ -106,8 +107,12 @@ def distortion(weights: torch.Tensor, t: torch.Tensor, delta: torch.Tensor, leng
 
 
 def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float = 1.0,
-                generator: torch.Generator | None = None, with_distortion: bool = False) -> dict:
+                generator: torch.Generator | None = None, with_distortion: bool = False,
+                samples_per_ray: int | None = None) -> dict:
+    """Colours of rays (training: jittered, `generator`; else bin centres) with `samples_per_ray` field
+    evaluations each (default FieldConfig.samples_per_ray)."""
     config = model.config
+    n_samples = config.samples_per_ray if samples_per_ray is None else int(samples_per_ray)
     n_rays = origins.shape[0]
     t_start, t_end = ray_cube_bounds(origins, dirs, near, far)
     grid = model.occupancy_for(blend)
@@ -118,8 +123,8 @@ def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float =
 
     jitter = None
     if generator is not None:
-        jitter = torch.rand((n_rays, config.samples_per_ray - 1), generator=generator).to(origins.device)
-    t, delta = proposal_intervals(t_start, t_end, grid_density, config.samples_per_ray, config.proposal_samples,
+        jitter = torch.rand((n_rays, n_samples - 1), generator=generator).to(origins.device)
+    t, delta = proposal_intervals(t_start, t_end, grid_density, n_samples, config.proposal_samples,
                                   config.proposal_uniform, jitter)
     points = origins[:, None, :] + t[..., None] * dirs[:, None, :]
     # Valid: the ray overlaps the cube, and the sample's occupancy cell may hold density.
@@ -144,7 +149,8 @@ def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float =
 @torch.no_grad()
 def render_view(model, c2w, intrinsics, width: int, height: int, near: float, far: float, *,
                 blend=None, retreat: float = 1.0, chunk: int = 8192) -> torch.Tensor:
-    """Full image in chunks of `chunk` rays (bounded memory); deterministic (bin-centre samples)."""
+    """Full image in chunks of `chunk` rays (bounded memory); deterministic (bin-centre samples), with
+    FieldConfig.render_samples_per_ray field evaluations per ray."""
     from dualnerf.cameras import view_rays
 
     device = next(model.parameters()).device
@@ -154,6 +160,6 @@ def render_view(model, c2w, intrinsics, width: int, height: int, near: float, fa
     out = torch.empty(origins.shape[0], 3)
     for s in range(0, origins.shape[0], chunk):
         result = render_rays(model, origins[s:s + chunk], dirs[s:s + chunk], float(near), float(far),
-                             blend=blend, retreat=retreat)
+                             blend=blend, retreat=retreat, samples_per_ray=model.config.render_samples_per_ray)
         out[s:s + chunk] = result["color"].float().cpu()
     return out.reshape(int(height), int(width), 3).clamp(0.0, 1.0)

@@ -42,8 +42,11 @@ class FitParams:
     grid_levels: int = 4                # dense feature grids from 16^3, doubling up to grid_max_resolution
     grid_max_resolution: int = 128
     grid_features: int = 2
+    plane_levels: int = 3               # xy/xz/yz feature planes, halving from plane_max_resolution (0: none)
+    plane_max_resolution: int = 1024
     hidden_width: int = 64
-    samples_per_ray: int = 48           # field evaluations per ray (placed by the occupancy-grid proposal)
+    samples_per_ray: int = 48           # field evaluations per training ray (placed by the occupancy-grid proposal)
+    render_samples_per_ray: int = 96    # per ray in full-image renders of this model (see FieldConfig)
     proposal_samples: int = 256
     background: str = "learned"         # learned | white | black
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
@@ -61,9 +64,30 @@ def grid_resolutions(levels: int, max_resolution: int) -> tuple[int, ...]:
     return tuple(round(base * growth ** i) for i in range(levels))
 
 
+def plane_resolutions(levels: int, max_resolution: int) -> tuple[int, ...]:
+    """Plane resolutions halving down from max_resolution: (256, 512, 1024) for 3 levels and 1024."""
+    if levels < 0 or (levels and max_resolution >> (levels - 1) < 2):
+        raise FitInputError(f"fit: plane_levels must be >= 0 and plane_max_resolution / 2^(plane_levels - 1) "
+                            f">= 2, got {levels}, {max_resolution}")
+    return tuple(max_resolution >> i for i in reversed(range(levels)))
+
+
+def field_config(p: FitParams):
+    """The FieldConfig of the static field these fit parameters train."""
+    from dualnerf.fields import FieldConfig
+
+    return FieldConfig(grid_resolutions=grid_resolutions(p.grid_levels, p.grid_max_resolution),
+                       plane_resolutions=plane_resolutions(p.plane_levels, p.plane_max_resolution),
+                       grid_features=p.grid_features, hidden_width=p.hidden_width,
+                       samples_per_ray=p.samples_per_ray, render_samples_per_ray=p.render_samples_per_ray,
+                       proposal_samples=p.proposal_samples, background=p.background)
+
+
 class FitStage(Stage):
     name = "fit"
-    version = "2"           # 2: proposal density scale (a different sampler, so different fields)
+    # 2: proposal density scale (a different sampler, so different fields); 3: feature planes and the
+    # render sample count
+    version = "3"
     Params = FitParams
     upstream = ("dataset",)
     resources = Resources(cpus=2, gpus=0, memory_gb=3)
@@ -74,7 +98,6 @@ class FitStage(Stage):
         import torch
 
         from dualnerf.dataset import load_dataset
-        from dualnerf.fields import FieldConfig
 
         p = ctx.params
         if p.device not in ("cpu", "cuda"):
@@ -88,10 +111,7 @@ class FitStage(Stage):
         if len(dataset.indices("train")) == 0:
             raise FitInputError(f"fit: dataset {ctx.inputs['dataset']} has no training views (all held out); "
                                 "rerun preprocess with a larger holdout_every")
-        config = FieldConfig(grid_resolutions=grid_resolutions(p.grid_levels, p.grid_max_resolution),
-                             grid_features=p.grid_features, hidden_width=p.hidden_width,
-                             samples_per_ray=p.samples_per_ray, proposal_samples=p.proposal_samples,
-                             background=p.background)
+        config = field_config(p)
         ctx.record(seed=p.seed, field_config=config.to_dict(), lpips="off (no LPIPS weights on this machine)")
         ctx.log.info("LPIPS loss is off (no LPIPS weights available); training with the RGB loss (eq. 3)")
         _FitRun(ctx, dataset, config).train_and_publish()

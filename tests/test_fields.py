@@ -148,3 +148,41 @@ def test_hashed_level_is_used_and_trainable():
     field(x, d)[1].sum().backward()
     assert field.hash_encoding.tables[0].grad.abs().sum() > 0
     assert FieldConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+
+
+def test_plane_grid_reads_each_plane_at_the_points_projection():
+    # Bilinear interpolation is exact for affine functions of the two in-plane coordinates, so a plane
+    # holding a*u + b*v returns exactly that at every point: this pins which axes each plane sees.
+    from dualnerf.encoding import PlaneGridEncoding
+
+    enc = PlaneGridEncoding((5, 16), features=1)
+    coefficients = {(0, 1): (0.7, -1.1), (0, 2): (2.0, 0.3), (1, 2): (-0.4, 1.5)}
+    with torch.no_grad():
+        for level, res in enumerate((5, 16)):
+            lin = torch.linspace(-1, 1, res)
+            v, u = torch.meshgrid(lin, lin, indexing="ij")          # plane dims are (H, W) = (v, u)
+            for axis, axes in enumerate(PlaneGridEncoding._AXES):
+                a, b = coefficients[axes]
+                enc.planes[3 * level + axis][0, 0] = a * u + b * v
+    pts = torch.rand(300, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    out = enc(pts)
+    assert out.shape == (300, 6) and enc.output_dim == 6
+    for level in range(2):
+        for axis, axes in enumerate(PlaneGridEncoding._AXES):
+            a, b = coefficients[axes]
+            torch.testing.assert_close(out[:, 3 * level + axis], a * pts[:, axes[0]] + b * pts[:, axes[1]],
+                                       atol=1e-5, rtol=0)
+
+
+def test_plane_levels_are_used_trainable_and_saved_in_the_config():
+    cfg = FieldConfig(grid_resolutions=(4,), plane_resolutions=(32,), hidden_width=16)
+    field = RadianceField(cfg, torch.Generator().manual_seed(0))
+    assert [tuple(p.shape) for p in field.plane_encoding.planes] == [(1, 2, 32, 32)] * 3
+    x, d = _inputs()
+    field(x, d)[1].sum().backward()
+    assert all(p.grad.abs().sum() > 0 for p in field.plane_encoding.planes)
+    assert FieldConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    # A point only moves the four texels around its projection on each plane.
+    field.zero_grad()
+    field(torch.tensor([[0.1, -0.3, 0.5]]), torch.tensor([[0.0, 0.0, 1.0]]))[0].sum().backward()
+    assert all(int((p.grad.abs().sum(dim=(0, 1)) > 0).sum()) <= 4 for p in field.plane_encoding.planes)

@@ -19,8 +19,8 @@ from dualnerf.training import RayTrainer, TrainConfig
 SMALL = FieldConfig(grid_resolutions=(8, 16), hidden_width=16, samples_per_ray=32, occupancy_resolution=8)
 TRAIN = TrainConfig(rays_per_batch=64, occupancy_warmup=2, occupancy_every=2)
 # Fit settings small enough for CI: the tiny scene at full size, few samples and coarse grids.
-FAST_FIT = {"rays_per_batch": 512, "grid_levels": 3, "grid_max_resolution": 64, "hidden_width": 32,
-            "samples_per_ray": 32}
+FAST_FIT = {"rays_per_batch": 512, "grid_levels": 3, "grid_max_resolution": 64, "plane_levels": 2,
+            "plane_max_resolution": 128, "hidden_width": 32, "samples_per_ray": 32, "render_samples_per_ray": 48}
 
 
 def random_views(n=3, h=6, w=8):
@@ -133,7 +133,8 @@ def load_model_config(out: Path) -> FieldConfig:
 
 
 KILL_PARAMS = {"iterations": 60, "checkpoint_every": 10, "eval_every": 1000, "rays_per_batch": 128, "grid_levels": 2,
-               "grid_max_resolution": 16, "hidden_width": 16, "samples_per_ray": 16, "proposal_samples": 64}
+               "grid_max_resolution": 16, "plane_levels": 1, "plane_max_resolution": 32, "hidden_width": 16,
+               "samples_per_ray": 16, "proposal_samples": 64}
 
 CHILD = """
 import logging, sys
@@ -199,6 +200,18 @@ def test_grid_resolutions():
     assert grid_resolutions(3, 64) == (16, 32, 64)
     assert grid_resolutions(1, 48) == (48,)
     assert grid_resolutions(2, 8) == (8, 8)
+
+
+def test_plane_resolutions():
+    from stages.fit import FitInputError, plane_resolutions
+
+    assert plane_resolutions(3, 1024) == (256, 512, 1024)
+    assert plane_resolutions(1, 48) == (48,)
+    assert plane_resolutions(0, 1024) == ()
+    with pytest.raises(FitInputError, match="plane_levels"):
+        plane_resolutions(4, 8)
+    with pytest.raises(FitInputError, match="plane_levels"):
+        plane_resolutions(-1, 1024)
 
 
 def test_learning_rate_decay_schedule():

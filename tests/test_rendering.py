@@ -158,6 +158,26 @@ def test_render_view_chunking_does_not_change_the_image():
     torch.testing.assert_close(a, b, atol=1e-6, rtol=0)
 
 
+def test_render_view_uses_the_render_sample_count():
+    from dualnerf.cameras import view_rays
+
+    config = FieldConfig(grid_resolutions=(8, 16), samples_per_ray=4, render_samples_per_ray=64, density_bias=1.0)
+    field = RadianceField(config, torch.Generator().manual_seed(3))
+    with torch.no_grad():           # a lumpy density, so the sample count changes the picture
+        for grid in field.encoding.grids:
+            grid.normal_(0.0, 1.0, generator=torch.Generator().manual_seed(4))
+    c2w = np.eye(4)
+    c2w[2, 3] = -2.5
+    k = np.array([12.0, 12.0, 6.0, 4.0])
+    image = render_view(field, c2w, k, 12, 8, 0.5, 5.0)
+    origins, dirs = view_rays(c2w, k, 12, 8)
+    by_count = {n: render_rays(field, origins, dirs, 0.5, 5.0, samples_per_ray=n)["color"].reshape(8, 12, 3)
+                for n in (4, 64)}
+    torch.testing.assert_close(image, by_count[64].clamp(0, 1), atol=1e-6, rtol=0)
+    assert (image - by_count[4].clamp(0, 1)).abs().max() > 1e-2
+    assert render_rays(field, origins, dirs, 0.5, 5.0)["evaluated"] <= 4 * len(origins)
+
+
 def test_proposal_intervals_tile_the_segment_and_follow_the_density():
     from dualnerf.rendering import proposal_intervals
 
