@@ -17,9 +17,9 @@ API:
 static/single field, blend=(w_density, w_color) the fused dual field (see dualnerf.dual_field).
 
 Sampling: the field lives in the normalised cube [-1,1]^3, so each ray is clipped to the overlap of
-[near, far] with the cube. That segment is cut into `samples_per_ray` intervals by `proposal_intervals`:
-fine where the occupancy grid's density estimate (scaled by
-FieldConfig.proposal_density_scale) says the visible surface is, coarse elsewhere (jittered
+[near, far] with the cube. That segment is cut into `samples_per_ray` intervals (render_view:
+`render_samples_per_ray`) by `proposal_intervals`: fine where the occupancy grid's density estimate
+(scaled by FieldConfig.proposal_density_scale) says the visible surface is, coarse elsewhere (jittered
 in training, deterministic when rendering). The field is evaluated at interval midpoints; midpoints in
 empty occupancy cells are not evaluated and get sigma = 0.
 
