@@ -33,6 +33,12 @@ from torch import nn
 _GRID_INIT_SCALE = 1e-4
 
 
+def _feature_values(*shape: int, generator: torch.Generator | None) -> nn.Parameter:
+    values = torch.empty(*shape)
+    nn.init.uniform_(values, -_GRID_INIT_SCALE, _GRID_INIT_SCALE, generator=generator)
+    return nn.Parameter(values)
+
+
 class DenseGridEncoding(nn.Module):
     """Concatenated trilinear features from dense grids at several resolutions over [-1,1]^3."""
 
@@ -42,9 +48,7 @@ class DenseGridEncoding(nn.Module):
         self.features = int(features)
         self.grids = nn.ParameterList()
         for res in self.resolutions:
-            grid = torch.empty(1, self.features, res, res, res)
-            nn.init.uniform_(grid, -_GRID_INIT_SCALE, _GRID_INIT_SCALE, generator=generator)
-            self.grids.append(nn.Parameter(grid))
+            self.grids.append(_feature_values(1, self.features, res, res, res, generator=generator))
 
     @property
     def output_dim(self) -> int:
@@ -78,9 +82,7 @@ class HashGridEncoding(nn.Module):
         self.tables = nn.ParameterList()
         for res in self.resolutions:
             size = min(2 ** int(table_size_log2), res ** 3)
-            table = torch.empty(size, self.features)
-            nn.init.uniform_(table, -_GRID_INIT_SCALE, _GRID_INIT_SCALE, generator=generator)
-            self.tables.append(nn.Parameter(table))
+            self.tables.append(_feature_values(size, self.features, generator=generator))
 
     @property
     def output_dim(self) -> int:
@@ -119,9 +121,7 @@ class PlaneGridEncoding(nn.Module):
         self.planes = nn.ParameterList()
         for res in self.resolutions:
             for _ in self._AXES:
-                plane = torch.empty(1, self.features, res, res)
-                nn.init.uniform_(plane, -_GRID_INIT_SCALE, _GRID_INIT_SCALE, generator=generator)
-                self.planes.append(nn.Parameter(plane))
+                self.planes.append(_feature_values(1, self.features, res, res, generator=generator))
 
     @property
     def output_dim(self) -> int:
