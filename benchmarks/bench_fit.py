@@ -3,8 +3,8 @@ training time, samples/second (forward + backward), peak RSS, and the cost of a 
 relative to a single-field step. The field is the one the fit stage trains with its default parameters
 (dense grids, feature planes, 48 samples per training ray, 96 per rendered ray), and the learning rate
 decays as in the fit stage (to lr_final_ratio over the steps the time budget allows, measured in the
-first 5% of it). Targets: PSNR >= 28 dB within 180 s
-on 2 threads; RSS <= 3 GB; dual/single step time <= 1.6.
+first 5% of it). Targets: PSNR >= 28 dB within 180 s on 2 threads; RSS <= 3 GB; dual/single step
+time <= 1.6.
 
     python -m benchmarks.bench_fit                      # generates campsite into a temp folder
     DUALNERF_BENCH_DATASET=/path/to/dataset python -m benchmarks.bench_fit
