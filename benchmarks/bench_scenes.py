@@ -35,7 +35,7 @@ def _pose_errors(scene: Path, dataset_dir: Path) -> tuple[float, float]:
     from dualnerf.io.nerfstudio import import_nerfstudio
 
     ds = load_dataset(dataset_dir)
-    gt = import_nerfstudio(scene / "gt" / "transforms.json")
+    gt = import_nerfstudio(scene / "gt" / "transforms.json", root=scene)
     order = [gt.names.index(n) for n in ds.names]
     centres = ds.c2w[:, :3, 3] / ds.normalisation["scale"] - ds.normalisation["offset"]
     radius = float(np.median(np.linalg.norm(gt.c2w[:, :2, 3], axis=1)))

@@ -27,6 +27,7 @@ from typing import Any
 
 from pipeline.dag import External, Step
 from pipeline.errors import UserError
+from pipeline.paths import check_plain_name
 
 STAGE_SECTIONS = ("scene", "preprocess", "fit", "edit", "evaluate")
 WORKFLOW_KEYS = {"name", "scene", "edit", "seeds", "variants", "instruction", "source_caption",
@@ -181,10 +182,12 @@ def _expand(path: Path, settings: dict, stage_params: dict) -> Workflow:
     scene_name = settings.get("scene")
     if not isinstance(scene_name, str) or not scene_name:
         raise WorkflowError(f"{path}: [workflow] scene must name a scene, e.g. scene = \"campsite\".")
+    check_plain_name(scene_name, f"{path}: [workflow] scene")      # it is substituted into folder names
     scenes_dir = Path(settings.get("scenes_dir", DEFAULT_SCENES_DIR))
     scene_inputs, origin, user_folder = resolve_scene(scene_name, scenes_dir)
     spec = _edit_vocabulary(scene_name, user_folder, path)
     edit_id = settings.get("edit") or (spec.edits[0].id if spec and spec.edits else "custom")
+    check_plain_name(edit_id, f"{path}: [workflow] edit")
     captions = {"instruction": None, "source_caption": None, "target_caption": None}
     if spec is not None and any(e.id == edit_id for e in spec.edits):
         edit = spec.edit(edit_id)
@@ -226,6 +229,7 @@ def _expand(path: Path, settings: dict, stage_params: dict) -> Workflow:
             steps += [edit, evaluate]
             cells.append(Cell(variant.label, evaluate, variant, seed, edit))
     report_dir = Path(str(settings.get("report_dir", "reports/{scene}")).format(scene=scene_name))
-    return Workflow(name=str(settings.get("name", path.stem)), path=path, scene_name=scene_name,
+    name = check_plain_name(str(settings.get("name", path.stem)), f"{path}: [workflow] name")
+    return Workflow(name=name, path=path, scene_name=scene_name,
                     scene_origin=origin, edit_id=edit_id, steps=steps, cells=cells, report_dir=report_dir,
                     settings=settings, **captions)

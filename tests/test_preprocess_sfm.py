@@ -18,7 +18,7 @@ from tests.test_preprocess import tree_hash
 def pose_errors(scene, dataset_dir):
     """(max centre error / camera-circle radius, relative focal error) against the scene's ground truth."""
     ds = load_dataset(dataset_dir)
-    gt = import_nerfstudio(scene / "gt" / "transforms.json")
+    gt = import_nerfstudio(scene / "gt" / "transforms.json", root=scene)
     order = [gt.names.index(n) for n in ds.names]
     centres = ds.c2w[:, :3, 3] / ds.normalisation["scale"] - ds.normalisation["offset"]
     radius = float(np.median(np.linalg.norm(gt.c2w[:, :2, 3], axis=1)))

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dualnerf.confine import check_plain_name, confine
 from dualnerf.dataset import Dataset
 from dualnerf.io.errors import InputError
 from dualnerf.io.images import read_image, resize_long_side
@@ -92,19 +93,26 @@ def carry_scene_files(source: Path, out: Path, names: list[str], size: tuple[int
     import cv2
 
     source, out = Path(source), Path(out)
+    if not source.is_dir():
+        return []
     if (source / "scene.toml").is_file():
+        confine(source / "scene.toml", source, error=InputError, where=str(source), field="file", value="scene.toml")
         shutil.copyfile(source / "scene.toml", out / "scene.toml")
     edits_dir = source / "gt" / "edits"
     carried = []
     if not edits_dir.is_dir():
         return carried
     for edit_dir in sorted(p for p in edits_dir.iterdir() if p.is_dir()):
+        check_plain_name(edit_dir.name, error=InputError, where=str(edits_dir), field="edit folder")
         for kind in ("images", "masks"):
             (out / "gt" / "edits" / edit_dir.name / kind).mkdir(parents=True, exist_ok=True)
         for name in names:
             src_img, src_mask = edit_dir / "images" / name, edit_dir / "masks" / name
             if not src_img.is_file():
                 continue
+            for path in (src_img, src_mask):
+                confine(path, source, error=InputError, where=str(edit_dir), field="ground-truth file",
+                        value=path.relative_to(source).as_posix())
             image = read_image(src_img)
             mask = cv2.imread(str(src_mask), cv2.IMREAD_GRAYSCALE)
             if mask is None:

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dualnerf.confine import check_file_name, confine
 from dualnerf.io.errors import InputError
 from dualnerf.io.reconstruction import Reconstruction
 
@@ -37,8 +38,10 @@ def find_image_folder(source: Path, model_dir: Path) -> Path:
                      f"{Path(source) / 'images'} and the model's parent folders); put the images there.")
 
 
-def reconstruction_from_pycolmap(model, image_dir: Path, total: int | None = None) -> Reconstruction:
-    """Convert a pycolmap.Reconstruction (COLMAP world->camera poses) into our Reconstruction."""
+def reconstruction_from_pycolmap(model, image_dir: Path, total: int | None = None,
+                                 root: Path | None = None) -> Reconstruction:
+    """Convert a pycolmap.Reconstruction (COLMAP world->camera poses) into our Reconstruction.
+    With `root` (the scene folder) every image the model names must lie inside it."""
     names, paths, c2w, intrinsics, sizes, distortion = [], [], [], [], [], []
     for image_id in sorted(model.images, key=lambda k: model.images[k].name):
         image = model.images[image_id]
@@ -52,8 +55,14 @@ def reconstruction_from_pycolmap(model, image_dir: Path, total: int | None = Non
         k, dist = _MODELS[model_name](np.asarray(camera.params, dtype=np.float64))
         w2c = np.eye(4)
         w2c[:3, :] = image.cam_from_world().matrix()
+        image_path = image_dir / image.name
+        if root is not None:
+            where = f"{image_dir.parent}: COLMAP model image {image_id}"
+            image_path = confine(image_path, root, error=InputError, where=where, field="image name",
+                                 value=image.name)
+            check_file_name(Path(image.name).name, error=InputError, where=where, field="image file name")
         names.append(Path(image.name).name)
-        paths.append(image_dir / image.name)
+        paths.append(image_path)
         c2w.append(np.linalg.inv(w2c))
         # COLMAP puts pixel centres at integer + 0.5 too, so cx, cy carry over unchanged.
         intrinsics.append(k)
@@ -82,8 +91,9 @@ def import_colmap_model(source: Path) -> Reconstruction:
         model = pycolmap.Reconstruction(str(model_dir))
     except (RuntimeError, ValueError) as err:    # pycolmap raises plain RuntimeError on malformed files
         raise InputError(f"{model_dir}: the COLMAP model could not be read ({err}); re-export it.") from None
-    image_dir = find_image_folder(source, model_dir)
-    recon = reconstruction_from_pycolmap(model, image_dir)
+    found = find_image_folder(source, model_dir)
+    image_dir = confine(found, source, error=InputError, where=str(model_dir), field="images folder", value=found)
+    recon = reconstruction_from_pycolmap(model, image_dir, root=source)
     recon.report["total"] = len(model.images)
     recon.report["unregistered"] = sorted(Path(model.images[i].name).name for i in model.images
                                           if not model.images[i].has_pose)

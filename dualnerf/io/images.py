@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dualnerf.confine import confine
 from dualnerf.io.errors import InputError
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr"}
@@ -15,9 +16,10 @@ log = logging.getLogger(__name__)
 def list_images(folder: Path) -> list[Path]:
     """Image files in `folder` (its `images/` subfolder when present), sorted by name.
 
-    Other files are skipped with a warning; hidden files are ignored silently.
+    Other files are skipped with a warning; hidden files are ignored silently. Every image must lie
+    inside `folder` once links are followed.
     """
-    folder = Path(folder)
+    root = folder = Path(folder)
     if (folder / "images").is_dir():
         folder = folder / "images"
     if not folder.is_dir():
@@ -27,7 +29,11 @@ def list_images(folder: Path) -> list[Path]:
     for path in sorted(folder.iterdir()):
         if path.name.startswith(".") or path.is_dir():
             continue
-        (images if path.suffix.lower() in IMAGE_SUFFIXES else skipped).append(path)
+        if path.suffix.lower() in IMAGE_SUFFIXES:
+            confine(path, root, error=InputError, where=str(folder), field="image", value=path.name)
+            images.append(path)
+        else:
+            skipped.append(path)
     if skipped:
         log.warning("skipping %d non-image file(s) in %s: %s", len(skipped), folder,
                     ", ".join(p.name for p in skipped[:10]) + (" ..." if len(skipped) > 10 else ""))

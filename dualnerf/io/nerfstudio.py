@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dualnerf.confine import check_file_name, confine
 from dualnerf.io.errors import InputError
 from dualnerf.io.ply import read_ply_points
 from dualnerf.io.reconstruction import Reconstruction
@@ -29,8 +30,11 @@ def find_transforms(source: Path) -> Path | None:
     return None
 
 
-def import_nerfstudio(path: Path) -> Reconstruction:
+def import_nerfstudio(path: Path, root: Path | None = None) -> Reconstruction:
+    """Cameras and image paths of `path`; every file it names must lie inside `root` (the scene
+    folder; default the folder holding `path`)."""
     path = Path(path)
+    root = path.parent if root is None else Path(root)
     try:
         doc = json.loads(path.read_text())
     except json.JSONDecodeError as err:
@@ -48,9 +52,11 @@ def import_nerfstudio(path: Path) -> Reconstruction:
         file_path = frame.get("file_path")
         if not isinstance(file_path, str):
             raise InputError(f"{where} has no 'file_path'.")
-        image_path = (path.parent / file_path).resolve()
+        image_path = path.parent / file_path
         if not image_path.suffix and image_path.with_suffix(".png").exists():
             image_path = image_path.with_suffix(".png")    # old Blender-style entries omit the suffix
+        image_path = confine(image_path, root, error=InputError, where=where, field="file_path", value=file_path)
+        check_file_name(Path(file_path).name, error=InputError, where=where, field="file_path's file name")
         if not image_path.is_file():
             missing.append(file_path)
             continue
@@ -83,7 +89,8 @@ def import_nerfstudio(path: Path) -> Reconstruction:
     points = None
     ply = doc.get("ply_file_path")
     if ply:
-        ply_path = path.parent / ply
+        ply_path = confine(path.parent / ply, root, error=InputError, where=str(path), field="ply_file_path",
+                           value=ply)
         if not ply_path.is_file():
             raise InputError(f"{path}: ply_file_path '{ply}' does not exist; fix or remove the entry.")
         points = read_ply_points(ply_path)

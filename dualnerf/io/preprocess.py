@@ -56,7 +56,7 @@ def preprocess(source: Path, out: Path, config: PreprocessConfig, scratch: Path 
             transforms = source / "gt" / "transforms.json"    # a procedural scene's ground-truth cameras
         if transforms is None:
             raise InputError(f"{source}: method 'nerfstudio' needs a transforms.json in it.")
-        recon = import_nerfstudio(transforms)
+        recon = import_nerfstudio(transforms, root=source if source.is_dir() else source.parent)
     elif method == "colmap":
         recon = import_colmap_model(source)
     else:

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dualnerf.confine import check_file_name, check_plain_name, confine
+
 SCENE_FILE = "scene.toml"
 GT_EDITS_DIR = Path("gt") / "edits"
 
@@ -74,6 +76,9 @@ def load_scene_spec(folder: Path) -> SceneSpec:
             raise SceneSpecError(f"{path}: {where} must be a table.")
         edits.append(EditSpec(**{key: _field(entry, key, str, path, where)
                                  for key in ("id", "instruction", "source_caption", "target_caption")}))
+    for i, edit in enumerate(edits):
+        check_plain_name(edit.id, error=SceneSpecError, where=f"{path}: [[edits]] entry {i + 1}", field="id")
+    check_file_name(name, error=SceneSpecError, where=f"{path}: [scene]", field="name")
     ids = [e.id for e in edits]
     if len(set(ids)) != len(ids):
         raise SceneSpecError(f"{path}: edit ids must be unique, got {ids}.")
@@ -101,8 +106,13 @@ def load_gt_edit(folder: Path, edit_id: str, name: str) -> tuple[np.ndarray, np.
     """
     import cv2
 
+    check_plain_name(edit_id, error=SceneSpecError, where=str(folder), field="edit id")
+    check_file_name(name, error=SceneSpecError, where=str(folder), field="view name")
     base = Path(folder) / GT_EDITS_DIR / edit_id
     image_path, mask_path = base / "images" / name, base / "masks" / name
+    for path in (image_path, mask_path):
+        confine(path, folder, error=SceneSpecError, where=str(folder), field="ground-truth file",
+                value=path.relative_to(folder).as_posix())
     if not image_path.exists():
         return None
     image = cv2.imread(str(image_path), cv2.IMREAD_COLOR)

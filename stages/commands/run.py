@@ -47,6 +47,7 @@ def default_jobs(steps) -> int:
 def _run(args: argparse.Namespace) -> int:
     from pipeline.dag import dry_run
     from pipeline.executors import make_executor
+    from pipeline.paths import confined
     from pipeline.runner import run_steps
     from stages import STAGES
     from stages.cli import open_store
@@ -64,7 +65,8 @@ def _run(args: argparse.Namespace) -> int:
 
     jobs = args.jobs or default_jobs(workflow.steps)
     executor = make_executor(args.executor, jobs=jobs, address=args.ray_address)
-    run_dir = args.runs / f"{workflow.name}-{workflow.scene_name}" / time.strftime("%Y%m%d-%H%M%S")
+    run_dir = confined(args.runs / f"{workflow.name}-{workflow.scene_name}" / time.strftime("%Y%m%d-%H%M%S"),
+                       args.runs, "run folder")
     started = time.perf_counter()
     result = run_steps(workflow.steps, registry=STAGES, store=store, executor=executor, run_dir=run_dir,
                        quiet=args.quiet)
