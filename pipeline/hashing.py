@@ -72,7 +72,7 @@ class ContentHasher:
 
     def hash_path(self, path: Path, what: str = "input") -> str:
         """'file:<sha256>' of a file's bytes or 'dir:<sha256>' over the sorted (relative path, size,
-        sha256) of every file below a folder."""
+        sha256) of every file below a folder, links to files and folders followed."""
         path = Path(path)
         if path.is_file():
             return "file:" + self.file_sha256(path)
@@ -81,17 +81,24 @@ class ContentHasher:
                 f"{what}: '{path}' does not exist (or is neither a file nor a folder). Check the path in "
                 f"the workflow file; relative paths are resolved against the current directory."
             )
-        listing = []
-        for folder, dirnames, filenames in os.walk(path):
-            dirnames.sort()
-            for filename in sorted(filenames):
-                file_path = Path(folder) / filename
-                st = file_path.stat()
-                rel = file_path.relative_to(path).as_posix()
-                listing.append([rel, st.st_size, self.file_sha256(file_path, st)])
+        listing: list[list] = []
+        self._list_folder(path, "", frozenset({os.path.realpath(path)}), listing)
         listing.sort()
         blob = json.dumps(listing, separators=(",", ":")).encode("utf-8")
         return "dir:" + hashlib.sha256(blob).hexdigest()
+
+    def _list_folder(self, folder: Path, prefix: str, chain: frozenset[str], listing: list[list]) -> None:
+        """Append [relative path, size, sha256] of every file below `folder`. Links are followed (what is
+        read through a link is part of the input); a link to a folder above itself is not (a cycle)."""
+        for entry in sorted(os.scandir(folder), key=lambda e: e.name):
+            rel = prefix + entry.name
+            if entry.is_dir():
+                real = os.path.realpath(entry.path)
+                if real not in chain:
+                    self._list_folder(Path(entry.path), rel + "/", chain | {real}, listing)
+            elif entry.is_file():
+                st = os.stat(entry.path)
+                listing.append([rel, st.st_size, self.file_sha256(Path(entry.path), st)])
 
     def save(self) -> None:
         if self._dirty and self.memo_path is not None:

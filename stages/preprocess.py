@@ -7,6 +7,7 @@ The input is only read; SfM works on converted copies in the scratch folder.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from pipeline.stage import Resources, Stage, StageContext
 
@@ -51,6 +52,10 @@ class PreprocessStage(Stage):
                 f"preprocess needs exactly one input, 'scene' (a procedural scene step) or 'source' (a user "
                 f"folder); got {given or 'none'}.")
         source = ctx.inputs[given[0]]
+        if given == ["source"] and not Path(source).is_dir():
+            raise PreprocessInputError(
+                f"preprocess: input 'source' must be a folder, got the file {source}. Pass the folder holding "
+                f"it (its whole content enters the cache key, so every image the file names must be in it).")
         p = ctx.params
         values = dataclasses.asdict(p)
         values["num_threads"] = p.num_threads or max(1, ctx.threads)
