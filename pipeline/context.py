@@ -18,10 +18,12 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from pipeline.hashing import write_json_atomic
+from pipeline.hashing import sha256_file, write_json_atomic
 
 KEEP_CHECKPOINTS = 2
 PROGRESS_FILE = "progress.json"
+CHECKSUM_FILE = ".checksums.json"     # written into every checkpoint, last, before the rename
+DAMAGED_PREFIX = "damaged-"           # damaged checkpoints are moved aside under this name
 
 
 class StepContext:
@@ -37,6 +39,7 @@ class StepContext:
         self.quiet = quiet
         self.label = label or key[:12]
         self.records: dict[str, Any] = {}
+        self._intact: set[str] = set()     # checkpoints already verified by this context
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.scratch_dir.mkdir(parents=True, exist_ok=True)
 
@@ -52,8 +55,26 @@ class StepContext:
         return sorted(found)
 
     def latest_checkpoint(self) -> tuple[int, Path] | None:
-        found = self._complete_checkpoints()
-        return found[-1] if found else None
+        """The newest checkpoint whose files match the checksums written with it. A damaged one
+        (truncated, changed, missing files) is reported by name and moved aside, and the next newest
+        is tried; with none intact the step starts over, and the log says so."""
+        damaged = []
+        for step, folder in reversed(self._complete_checkpoints()):
+            problems = [] if folder.name in self._intact else checkpoint_problems(folder)
+            if not problems:
+                self._intact.add(folder.name)
+                if damaged:
+                    self.log.warning("resuming from the older intact checkpoint %s instead", folder)
+                return step, folder
+            aside = folder.with_name(f"{DAMAGED_PREFIX}{folder.name}-{uuid.uuid4().hex[:8]}")
+            folder.rename(aside)
+            damaged.append(aside)
+            self.log.warning("checkpoint %s is damaged (%s); moved it aside to %s (deleted with the scratch "
+                             "folder once the step succeeds)", folder, "; ".join(problems), aside)
+        if damaged:
+            self.log.warning("no intact checkpoint left in %s: the step starts over from the beginning",
+                             self._checkpoints)
+        return None
 
     @contextmanager
     def checkpoint(self, step: int) -> Iterator[Path]:
@@ -69,6 +90,7 @@ class StepContext:
         except BaseException:
             shutil.rmtree(partial, ignore_errors=True)
             raise
+        write_checksums(partial)
         final = self._checkpoints / f"{step:012d}"
         if final.exists():
             shutil.rmtree(final)
@@ -93,6 +115,42 @@ class StepContext:
             yield reporter
         finally:
             reporter.close()
+
+
+def _files(folder: Path) -> list[str]:
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                  if p.is_file() and p.name != CHECKSUM_FILE)
+
+
+def write_checksums(folder: Path) -> None:
+    """Record the size and sha256 of every file in a finished checkpoint folder."""
+    files = {rel: {"size": (folder / rel).stat().st_size, "sha256": sha256_file(folder / rel)}
+             for rel in _files(folder)}
+    write_json_atomic(folder / CHECKSUM_FILE, {"files": files})
+
+
+def checkpoint_problems(folder: Path) -> list[str]:
+    """What is wrong with a checkpoint folder against its checksums; [] if intact."""
+    try:
+        expected = json.loads((folder / CHECKSUM_FILE).read_text(encoding="utf-8"))["files"]
+    except FileNotFoundError:
+        return [f"{CHECKSUM_FILE} is missing (written by an older version, or not by this engine)"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        return [f"{CHECKSUM_FILE} is unreadable ({exc})"]
+    found = []
+    for rel, meta in sorted(expected.items()):
+        path = folder / rel
+        try:
+            size = path.stat().st_size
+        except OSError:
+            found.append(f"{rel}: missing")
+            continue
+        if size != meta["size"]:
+            found.append(f"{rel}: {size} bytes, {meta['size']} when written (truncated or overwritten)")
+        elif sha256_file(path) != meta["sha256"]:
+            found.append(f"{rel}: content changed since it was written (sha256 differs)")
+    found += [f"{rel}: not written with the checkpoint" for rel in _files(folder) if rel not in expected]
+    return found
 
 
 class ProgressReporter:

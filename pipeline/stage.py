@@ -69,7 +69,8 @@ class StageContext(Protocol):
     threads: int                # CPU threads this step may use (the stage applies it, e.g. torch)
 
     def latest_checkpoint(self) -> tuple[int, Path] | None:
-        """The newest complete in-stage checkpoint: (step, folder), or None on a fresh start."""
+        """The newest intact in-stage checkpoint: (step, folder), or None on a fresh start. Its files
+        match the checksums written with it; a damaged newer one is reported and moved aside."""
 
     def checkpoint(self, step: int) -> AbstractContextManager[Path]:
         """A temp folder to fill; on clean exit it becomes the checkpoint for `step`, atomically.
