@@ -71,7 +71,8 @@ def _worker_init(threads: int, parent_pid: int) -> None:
         os.environ[name] = str(threads)
     # A SIGTERM sent to the whole process group (a job scheduler, `kill -TERM -PGID`) unwinds the step
     # like Ctrl-C does (lease released, checkpoints kept). A stage that imports a native library which
-    # takes SIGTERM over (glog in pycolmap) loses this, which is why the runner itself uses SIGINT.
+    # takes SIGTERM over (glog in pycolmap, unless imported through a helper that gives SIGTERM back)
+    # loses this, which is why the runner itself uses SIGINT.
     signal.signal(signal.SIGTERM, _terminate_as_interrupt)
     exit_with_parent(parent_pid)
 

@@ -117,6 +117,16 @@ class RunResult:
             lines.append(f"run record: {self.run_file}")
         return "\n".join(lines)
 
+    def first_error(self) -> str | None:
+        """One line naming the first step that failed (in execution order), its error and its log."""
+        failed = [f for f in self.failed if not f.skipped]
+        if not failed:
+            return None
+        first = failed[0]
+        error = first.error.strip().splitlines()[-1] if first.error.strip() else "failed"
+        more = f" ({len(failed) - 1} more failed)" if len(failed) > 1 else ""
+        return f"first error: {first.label}: {error}{more}; full log: {first.log_path}"
+
 
 def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Store, executor: Executor,
               run_dir: Path, quiet: bool = False) -> RunResult:
@@ -124,6 +134,7 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
     Raises a UserError before anything runs if a step is invalid. Shuts the executor down at the end.
     The record goes to `run_dir` (or `run_dir-N` if another run owns that folder; see result.run_file)."""
     keyed = compute_keys(steps, registry=registry, store=store)
+    store.remove_orphan_tmp()           # what killed earlier runs left half-written
     record = RunRecord(claim_run_dir(run_dir), store.root)
     # Several steps at once: periodic log lines, not tqdm bars fighting over one terminal line.
     step_quiet = quiet or executor.slots > 1

@@ -110,6 +110,30 @@ class Store:
         path.mkdir(parents=True)
         return path
 
+    # ---- orphaned work in progress --------------------------------------------------------------
+    def orphan_tmp(self) -> list[Path]:
+        """tmp/<key>.<nonce> folders whose writer is dead: nobody holds a live lease on <key>. A writer
+        creates its tmp folder only while holding the lease and removes or publishes it before release,
+        so such a folder is what a killed process left behind and nobody will ever use."""
+        if not self.tmp.is_dir():
+            return []
+        found = []
+        for path in sorted(self.tmp.iterdir()):
+            holder = self.lease_holder(path.name.split(".")[0])
+            if holder is None or holder.is_stale():
+                found.append(path)
+        return found
+
+    def remove_orphan_tmp(self) -> list[str]:
+        """Delete the folders `orphan_tmp` lists; returns their names (tmp/<key>.<nonce>)."""
+        removed = []
+        for path in self.orphan_tmp():
+            shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+            removed.append(f"{self.tmp.name}/{path.name}")
+        if removed:
+            log.info("removed %d temporary folder(s) left by killed writers: %s", len(removed), ", ".join(removed))
+        return removed
+
     # ---- reading -------------------------------------------------------------------------------
     def has(self, key: str) -> bool:
         """Published (manifest present); no file checks. For listings, not for use."""

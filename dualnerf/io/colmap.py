@@ -21,6 +21,27 @@ _MODELS = {
 SUPPORTED_MODELS = tuple(_MODELS)
 
 
+def load_pycolmap():
+    """The pycolmap module, imported so that SIGTERM keeps the handler Python had.
+
+    On import pycolmap installs glog's failure signal handler, SIGTERM included: a terminated worker
+    would print a native stack dump and die without unwinding (no clean stop, lease not released).
+    glog keeps its handlers for real crashes (SIGSEGV, SIGABRT, ...); only SIGTERM is given back.
+    """
+    import signal
+    import threading
+
+    # Python still records its own handler after glog replaced it at the C level: setting it again
+    # restores it, also when pycolmap was imported before.
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGTERM) if main_thread else None
+    import pycolmap
+
+    if previous is not None:
+        signal.signal(signal.SIGTERM, previous)
+    return pycolmap
+
+
 def find_model(source: Path) -> Path | None:
     """The sparse model folder in `source` (itself, sparse/0 or sparse), else None."""
     source = Path(source)
@@ -82,7 +103,7 @@ def reconstruction_from_pycolmap(model, image_dir: Path, total: int | None = Non
 
 
 def import_colmap_model(source: Path) -> Reconstruction:
-    import pycolmap
+    pycolmap = load_pycolmap()
 
     model_dir = find_model(source)
     if model_dir is None:

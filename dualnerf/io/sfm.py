@@ -57,9 +57,9 @@ def prepare_images(source: Path, folder: Path) -> tuple[list[str], list[Path], n
 
 def run_sfm(source: Path, scratch: Path, config) -> Reconstruction:
     """Reconstruct the cameras of the images in `source`; `config` is a PreprocessConfig."""
-    import pycolmap
+    from dualnerf.io.colmap import SUPPORTED_MODELS, load_pycolmap
 
-    from dualnerf.io.colmap import SUPPORTED_MODELS
+    pycolmap = load_pycolmap()
 
     if config.matcher not in ("auto", "exhaustive", "sequential"):
         raise InputError(f"unknown matcher '{config.matcher}'; use auto, exhaustive or sequential.")

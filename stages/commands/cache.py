@@ -97,7 +97,12 @@ def _verify(args: argparse.Namespace) -> int:
                 print(f"DAMAGED {key[:12]}: {problem}")
             if args.quarantine:
                 print(f"  moved to {store.quarantine(key, problems)}")
-    print(f"verified {count} entries: {count - bad} intact, {bad} damaged")
+    orphans = store.orphan_tmp()
+    for path in orphans:
+        print(f"ORPHAN {store.tmp.name}/{path.name}: left by a writer that died; removed when the next run "
+              f"starts (or by `dualnerf cache gc`)")
+    print(f"verified {count} entries: {count - bad} intact, {bad} damaged"
+          + (f"; {len(orphans)} orphaned temporary folder(s)" if orphans else ""))
     return 1 if bad else 0
 
 

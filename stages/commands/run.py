@@ -77,11 +77,15 @@ def _run(args: argparse.Namespace) -> int:
           f"record {result.run_file}")
     if result.failed:
         print("run: these steps did not finish:", file=sys.stderr)
-        for failure in result.failed:
-            why = "skipped (an upstream step failed)" if failure.skipped else failure.error.splitlines()[-1]
-            print(f"  {failure.label}: {why}\n    log: {failure.log_path}", file=sys.stderr)
+        for failure in (f for f in result.failed if not f.skipped):
+            print(f"  {failure.label}: {failure.error.splitlines()[-1]}\n    log: {failure.log_path}", file=sys.stderr)
+        skipped = [f.label for f in result.failed if f.skipped]
+        if skipped:
+            print(f"  skipped, as an upstream step failed: {', '.join(skipped)}", file=sys.stderr)
     if not args.no_report:
         _write_report(workflow, store, args.reports, partial=bool(result.failed))
+    if result.first_error():
+        print(f"run: {result.first_error()}", file=sys.stderr)     # the last line says what went wrong
     return 1 if result.failed else 0
 
 
