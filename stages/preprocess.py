@@ -25,7 +25,8 @@ class PreprocessParams:
     holdout_every: int = 8                  # every k-th view held out for evaluation (0: none)
     seed: int = 0                           # SfM RANSAC / mapper seed
     matcher: str = "auto"                   # auto (exhaustive up to 150 images) | exhaustive | sequential
-    camera_model: str = "SIMPLE_RADIAL"     # COLMAP camera model fitted by SfM
+    camera_model: str = "auto"              # COLMAP camera model fitted by SfM; auto: pinhole unless the
+                                            # matches support a radial term (see dualnerf.io.sfm)
     single_camera: bool = True              # one camera shared by all images
     min_registered_fraction: float = 0.5    # fail when SfM registers fewer images than this
     num_threads: int = 0                    # non-semantic; 0: the threads the engine grants
@@ -33,7 +34,7 @@ class PreprocessParams:
 
 class PreprocessStage(Stage):
     name = "preprocess"
-    version = "1"
+    version = "2"           # 2: SfM with more SIFT features, 2 px filter, pinhole unless distortion pays
     Params = PreprocessParams
     upstream = ("scene",)
     external = ("source",)
@@ -62,6 +63,8 @@ class PreprocessStage(Stage):
         config = PreprocessConfig(**values)
         ctx.log.info("preprocessing %s (method %s)", source, p.method)
         report = preprocess(source, ctx.out_dir, config, scratch=ctx.scratch_dir / "sfm")
+        for warning in report.get("warnings", []):
+            ctx.log.warning(warning)
         ctx.log.info("registered %d/%d images, %s points, mean reprojection error %s px",
                      report["registered"], report["total"], report["points"], report["mean_reprojection_error"])
         ctx.record(seed=p.seed, method=report["method"], registered=report["registered"], total=report["total"],

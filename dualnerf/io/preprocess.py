@@ -30,7 +30,7 @@ class PreprocessConfig:
     matcher: str = "auto"           # auto | exhaustive | sequential
     min_registered_fraction: float = 0.5
     single_camera: bool = True      # one shared camera for all images (same device, same zoom)
-    camera_model: str = "SIMPLE_RADIAL"   # COLMAP model fitted by SfM; distortion is undone afterwards
+    camera_model: str = "auto"      # COLMAP model fitted by SfM ("auto": pinhole unless a radial term pays)
 
 
 def detect_method(source: Path) -> str:
