@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dualnerf.confine import check_file_name, confine
+
 FORMAT = "dualnerf-dataset"
 FORMAT_VERSION = 1
 CONVENTION = "c2w 4x4, OpenCV camera axes (x right, y down, z forward); world normalised into [-1,1]^3"
@@ -105,7 +107,11 @@ def load_dataset(folder: Path) -> Dataset:
                            f"{doc.get('format')} v{doc.get('version')}; rerun preprocess")
     frames = doc["frames"]
     images = []
-    for frame in frames:
+    for i, frame in enumerate(frames):
+        # Names become output file names (views/<name>) and files are read: both stay in the folder.
+        check_file_name(frame.get("name"), error=DatasetError, where=f"{path}: frame {i}", field="name")
+        confine(folder / str(frame["file"]), folder, error=DatasetError, where=f"{path}: frame {i}", field="file",
+                value=frame["file"])
         image = cv2.imread(str(folder / frame["file"]), cv2.IMREAD_COLOR)
         if image is None:
             raise DatasetError(f"{folder / frame['file']} is missing or unreadable; rerun preprocess")

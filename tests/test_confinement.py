@@ -195,3 +195,17 @@ def test_plain_name_and_confined_helpers(tmp_path):
     os.symlink(tmp_path, tmp_path / "runs" / "link")
     with pytest.raises(PathError, match="outside"):
         confined(tmp_path / "runs" / "link" / "x", tmp_path / "runs", "run folder")
+
+
+@pytest.mark.parametrize("field, value", [("name", "../escape.png"), ("file", "../outside.png")])
+def test_a_dataset_naming_files_outside_itself_is_refused(tiny_dataset, tmp_path, field, value):
+    from dualnerf.dataset import DatasetError, load_dataset
+
+    folder = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, folder)
+    doc = json.loads((folder / "cameras.json").read_text())
+    shutil.copyfile(folder / doc["frames"][0]["file"], tmp_path / "outside.png")
+    doc["frames"][0][field] = value
+    (folder / "cameras.json").write_text(json.dumps(doc))
+    with pytest.raises(DatasetError, match=rf"frame 0.*{field} '\.\./"):
+        load_dataset(folder)
