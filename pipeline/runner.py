@@ -125,7 +125,7 @@ class RunResult:
         first = failed[0]
         error = first.error.strip().splitlines()[-1] if first.error.strip() else "failed"
         more = f" ({len(failed) - 1} more failed)" if len(failed) > 1 else ""
-        return f"first error: {first.label}: {error}{more}; full log: {first.log_path}"
+        return f"first error: {first.label}: {error.rstrip('.')}{more}; full log: {first.log_path}"
 
 
 def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Store, executor: Executor,
