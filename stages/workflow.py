@@ -27,7 +27,7 @@ from typing import Any
 
 from pipeline.dag import External, Step
 from pipeline.errors import UserError
-from pipeline.paths import check_plain_name
+from pipeline.paths import check_plain_name, confined
 
 STAGE_SECTIONS = ("scene", "preprocess", "fit", "edit", "evaluate")
 WORKFLOW_KEYS = {"name", "scene", "edit", "seeds", "variants", "instruction", "source_caption",
@@ -228,8 +228,10 @@ def _expand(path: Path, settings: dict, stage_params: dict) -> Workflow:
                             label=f"evaluate[{tag}]")
             steps += [edit, evaluate]
             cells.append(Cell(variant.label, evaluate, variant, seed, edit))
-    report_dir = Path(str(settings.get("report_dir", "reports/{scene}")).format(scene=scene_name))
-    name = check_plain_name(str(settings.get("name", path.stem)), f"{path}: [workflow] name")
+    template = str(settings.get("report_dir", "reports/{scene}"))
+    report_dir = confined(template.format(scene=scene_name), Path(template.split("{")[0] + "x").parent,
+                          f"{path}: [workflow] report_dir")        # the scene name cannot lead it elsewhere
+    name = check_plain_name(settings["name"], f"{path}: [workflow] name") if "name" in settings else path.stem
     return Workflow(name=name, path=path, scene_name=scene_name,
                     scene_origin=origin, edit_id=edit_id, steps=steps, cells=cells, report_dir=report_dir,
                     settings=settings, **captions)

@@ -209,3 +209,15 @@ def test_a_dataset_naming_files_outside_itself_is_refused(tiny_dataset, tmp_path
     (folder / "cameras.json").write_text(json.dumps(doc))
     with pytest.raises(DatasetError, match=rf"frame 0.*{field} '\.\./"):
         load_dataset(folder)
+
+
+def test_report_folder_stays_inside_the_folder_its_template_names(tmp_path, monkeypatch):
+    from stages.workflow import load_workflow
+
+    monkeypatch.chdir(tmp_path)
+    wf = load_workflow(ABLATION, ["scenes_dir=/nonexistent", "report_dir=out/reports/{scene}"])
+    assert wf.report_dir == Path("out/reports/campsite")
+    (tmp_path / "out" / "reports").mkdir(parents=True)
+    os.symlink(tmp_path, tmp_path / "out" / "reports" / "campsite")      # a link out of out/reports/
+    with pytest.raises(PathError, match=r"\[workflow\] report_dir 'out/reports/campsite' resolves to .* outside"):
+        load_workflow(ABLATION, ["scenes_dir=/nonexistent", "report_dir=out/reports/{scene}"])
