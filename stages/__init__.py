@@ -7,4 +7,5 @@ STAGES = {
     "fit": "stages.fit:FitStage",
     "edit": "stages.edit:EditStage",
     "evaluate": "stages.evaluate:EvaluateStage",
+    "perframe": "stages.perframe:PerFrameStage",
 }

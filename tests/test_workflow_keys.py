@@ -13,7 +13,7 @@ PINNED = json.loads((ROOT / "tests" / "data" / "pinned_workflow_keys.json").read
 
 @pytest.mark.parametrize("case", sorted(PINNED))
 def test_shipped_workflow_keys_are_unchanged(case, tmp_path, monkeypatch):
-    import pipeline.keys as keys
+    from pipeline import keys
     from pipeline.dag import compute_keys
     from pipeline.store import Store
     from stages import STAGES
