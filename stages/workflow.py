@@ -368,6 +368,7 @@ def _expand(path: Path, settings: dict, stage_params: dict, axes_doc: dict) -> W
                             f"is read by no cell of the grid: methods {', '.join(methods)} never run that "
                             f"stage. Remove the axis or add a method that uses it.")
     first = cells[0]
+    names = list(dict.fromkeys(c.scene for c in cells))        # the scenes left after the filters
     report_dir = _report_dir(path, settings, names)
     first_captions = captions_cache[(first.scene, first.edit_id)]
     sizes = [("scene", len(names)), ("edit", len({(c.scene, c.edit_id) for c in cells})),
