@@ -36,6 +36,7 @@ from typing import Any
 
 from pipeline.dag import External, Step
 from pipeline.errors import UserError
+from pipeline.grid import GridError
 from stages import workflow_grid as grid
 
 STAGE_SECTIONS = grid.GRID_STAGES
@@ -295,8 +296,11 @@ def _expand(path: Path, settings: dict, stage_params: dict, axes_doc: dict) -> W
     seeds = grid.parse_seeds(WorkflowError, path, settings.get("seeds", [0]))
     param_axes, fixed = grid.param_axes(WorkflowError, path, stage_params, axes_doc)
     axes = grid.grid_axes(names, lambda scene: scenes[scene].edit_ids, list(methods.values()), seeds, param_axes)
-    grid_cells = grid.expand(axes, _filters(path, settings, "include"), _filters(path, settings, "exclude"),
-                             where=str(path))
+    try:
+        grid_cells = grid.expand(axes, _filters(path, settings, "include"), _filters(path, settings, "exclude"),
+                                 where=str(path))
+    except GridError as err:
+        raise WorkflowError(str(err)) from None
     builder = grid.GridBuilder()
     cells: list[Cell] = []
     listed: set[int] = set()
