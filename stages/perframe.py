@@ -82,8 +82,8 @@ class PerFrameStage(Stage):
         if not instruction:
             raise PerFrameError(f"perframe: no instruction; set 'instruction', or 'edit_id' naming an edit of "
                                 f"{data_dir / 'scene.toml'}.")
+        editor, gt_renderer = _editor(p, data_dir, dataset, instruction)      # fails fast on unusable data
         jobs = _evaluation_cameras(original_dir, dataset)     # (group, name, c2w, (w, h), f_S render)
-        editor, gt_renderer = _editor(p, data_dir, dataset, instruction)
 
         done = _resume(ctx, len(jobs))
         if done:

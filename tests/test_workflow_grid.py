@@ -57,7 +57,7 @@ def test_comparison_shares_its_campsite_cells_with_the_ablation(tmp_path):
 
 def test_all_scenes_and_edits_are_read_from_the_library_at_expansion_time(monkeypatch):
     """Scenes and edits added to dualnerf.scenes.library (issue 14) join the comparison automatically."""
-    import dualnerf.scenes.library as library
+    from dualnerf.scenes import library
     from dualnerf.scenes.library import BUILDERS, CAMPSITE, SCENES, EditDef
     from dualnerf.scenes.render import Variant
 
