@@ -232,3 +232,16 @@ def test_rerun_and_added_seed_or_value_compute_only_new_cells(tmp_path, monkeypa
     added_value = run("w_max=[0.1,0.3]", "lambda=[0.005]", "seeds=[0,1]")
     assert sorted((e["stage"], e.get("w_max_color")) for e in added_value) == [
         ("edit", 0.3), ("edit", 0.3), ("evaluate", None), ("evaluate", None)]
+
+
+def test_dry_run_prints_the_grid_size_and_every_cell(tmp_path, capsys):
+    from stages.cli import main
+
+    code = main(["--cache", str(tmp_path / "cache"), "run", str(WORKFLOWS / "sweep_blend.toml"), "--dry-run",
+                 "--set", NO_USER, "--set", "seeds=[0,1]"])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "grid: 21 cells (1 scene x 1 edit x 2 method x 2 seed x 3 w_max x 3 lambda" in out
+    assert "[20] scene=campsite edit=snow method=DualNeRF seed=1 w_max=0.3 lambda=0.01" in out
+    assert out.count("pending") == 3 + 1 + 2 * 20          # scene, preprocess, fit, original; edit+evaluate per cell
+    assert not (tmp_path / "cache" / "objects").exists() or not any((tmp_path / "cache" / "objects").iterdir())
