@@ -302,6 +302,7 @@ def _expand(path: Path, settings: dict, stage_params: dict, axes_doc: dict) -> W
     except GridError as err:
         raise WorkflowError(str(err)) from None
     builder = grid.GridBuilder()
+    single = len({(p["scene"], p["edit"]) for p in grid_cells}) == 1
     cells: list[Cell] = []
     listed: set[int] = set()
     read_anywhere: set[str] = set()
@@ -315,7 +316,10 @@ def _expand(path: Path, settings: dict, stage_params: dict, axes_doc: dict) -> W
         read: dict[str, Any] = {}
 
         params_for = functools.partial(_params_for, fixed, param_axes, point, read)
-        tag = functools.partial(_tag, scene.name, edit_id, read, order)
+        # One scene edit in the whole grid: the step labels of the single-scene workflows (run records
+        # and logs keep reading "edit[DF+SA, seed 0]"); otherwise every label names its scene edit.
+        prefix = "" if single else f"{scene.name}/{edit_id}"
+        tag = functools.partial(_tag, prefix, read, order)
 
         key = (scene.name, edit_id)
         if key not in captions_cache:
@@ -332,7 +336,7 @@ def _expand(path: Path, settings: dict, stage_params: dict, axes_doc: dict) -> W
         evaluate_common = {"edit_id": edit_id, "source_caption": captions["source_caption"],
                            "target_caption": captions["target_caption"], **params_for("evaluate")}
         original = builder.make("evaluate", evaluate_common, {"dataset": preprocess, "fit": fit},
-                                label=f"evaluate[{tag('original')}]")
+                                label=f"evaluate[{tag(scene.name, 'original') if single else tag('original')}]")
         if with_original and id(original) not in listed:
             listed.add(id(original))
             cells.append(Cell("Original scene", original, scene=scene.name, edit_id=edit_id,
@@ -396,8 +400,8 @@ def _params_for(fixed: dict, param_axes: list, point, read: dict, stage: str, on
     return values
 
 
-def _tag(scene: str, edit_id: str, read: dict, order: dict, *parts: str) -> str:
-    return grid.label_of(scene, edit_id, list(parts), dict(_ordered(read, order)))
+def _tag(prefix: str, read: dict, order: dict, *parts: str) -> str:
+    return grid.label_of(prefix, list(parts), dict(_ordered(read, order)))
 
 
 def _ordered(read: dict, order: dict) -> tuple:

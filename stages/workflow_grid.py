@@ -225,9 +225,9 @@ def grid_axes(scenes: list[str], edits_of, methods: list[Method], seeds: list[in
             + [Axis(a.name, a.values) for a in axes])
 
 
-def label_of(scene: str, edit: str, parts: list[str], read: dict[str, Any]) -> str:
-    shown = [f"{k}={format_value(v)}" for k, v in read.items()]
-    return f"{scene}/{edit}" + "".join(f", {p}" for p in parts + shown)
+def label_of(prefix: str, parts: list[str], read: dict[str, Any]) -> str:
+    """"<prefix>, part, ..., axis=value, ..." (the prefix names the scene edit; may be empty)."""
+    return ", ".join(([prefix] if prefix else []) + parts + [f"{k}={format_value(v)}" for k, v in read.items()])
 
 
 __all__ = [

@@ -20,7 +20,7 @@ def _keys(load, workflow, overrides, store):
     keyed = compute_keys(wf.steps, registry=STAGES, store=store)
     by_stage: dict[str, list] = {}
     for k in keyed.values():
-        by_stage.setdefault(k.step.stage, []).append(k.key)
+        by_stage.setdefault(k.step.stage, []).append((k.key, k.step.label))
     cells = sorted((c.label, -1 if c.seed is None else c.seed, keyed[c.evaluate].key) for c in wf.cells)
     return {s: sorted(v) for s, v in by_stage.items()}, cells
 
@@ -34,6 +34,6 @@ def test_single_scene_workflows_keep_their_keys(workflow, overrides, tmp_path):
     store = Store(tmp_path / "cache")
     old_steps, old_cells = _keys(load_legacy, workflow, overrides, store)
     new_steps, new_cells = _keys(load_workflow, workflow, overrides, store)
-    assert new_steps == old_steps
+    assert new_steps == old_steps          # same keys, and the same step labels in run records and logs
     assert new_cells == old_cells          # same rows, same labels, same evaluate keys
-    assert len(old_steps["fit"]) == 1
+    assert len(old_steps["fit"]) == 1 and len(old_steps["edit"]) == len(old_cells) - 1
