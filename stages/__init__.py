@@ -8,4 +8,5 @@ STAGES = {
     "edit": "stages.edit:EditStage",
     "evaluate": "stages.evaluate:EvaluateStage",
     "perframe": "stages.perframe:PerFrameStage",
+    "gtviews": "stages.gtviews:GroundTruthViewsStage",
 }

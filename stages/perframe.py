@@ -3,21 +3,17 @@ every evaluation view (the camera-path frames and the fixed views of the unedite
 editor's output for f_S's render of that view, edited independently of all others. The evaluate stage
 then scores these images with the same metrics as every other row (its "perframe" input).
 
-Inputs: "dataset" (preprocess result) and "original" (the unedited scene's evaluate result: its f_S
-renders, camera path and view names, so the baseline edits exactly the images the other rows are
-compared on).
+Inputs: "dataset" (preprocess result), "original" (the unedited scene's evaluate result: its f_S renders,
+camera path and view names, so the baseline edits exactly the images the other rows are compared on)
+and, for the emulator, "gtviews" (stages.gtviews: the scene re-rendered, original and edited, at those
+cameras).
 
 Editors: "ip2p" is the real baseline (InstructPix2Pix conditioned on, and starting from, f_S's render).
-"synthetic" is the InstructPix2Pix EMULATOR (a simulator), which needs the ground-truth edit of each view
-it edits: the stage re-renders the procedural scene the dataset was made from (its scene.toml) at every
-evaluation camera, mapped from the dataset's normalised frame back into the scene frame
-(dualnerf.scenes.views), and writes those ground-truth renders too.
+"synthetic" is the InstructPix2Pix EMULATOR (a simulator), built per view from that view's ground truth.
 
 Outputs:
     frames/edited/0000.png ...     the edited path frames
     views/edited/<name>            the edited fixed views
-    gt/frames/..., gt/views/...    (synthetic editor) the re-rendered original and ground-truth edited
-                                   images and masks the emulator used: {original,gt_edit,gt_mask}/
     edit.json                      method, editor identity (simulator flag), instruction, seeds, per-image
                                    editor details
 
@@ -50,7 +46,6 @@ class PerFrameParams:
     editor: str = "synthetic"      # "synthetic" (InstructPix2Pix EMULATOR, a simulator) or "ip2p"
     editor_model: str = ""         # ip2p: local diffusers folder or hub id
     seed: int = 0
-    scene_supersample: int = 0     # the procedural scene's supersample (0: its default), to re-render it exactly
     device: str = "cpu"
     num_threads: int = 0           # non-semantic; 0: the threads the engine grants
 
@@ -59,7 +54,7 @@ class PerFrameStage(Stage):
     name = "perframe"
     version = "1"
     Params = PerFrameParams
-    upstream = ("dataset", "original")
+    upstream = ("dataset", "original", "gtviews")
     resources = Resources(cpus=2, gpus=0, memory_gb=3)
     nonsemantic_params = frozenset({"num_threads"})
     packages = ("torch", "numpy", "opencv-contrib-python-headless", "diffusers", "transformers")
@@ -82,8 +77,8 @@ class PerFrameStage(Stage):
         if not instruction:
             raise PerFrameError(f"perframe: no instruction; set 'instruction', or 'edit_id' naming an edit of "
                                 f"{data_dir / 'scene.toml'}.")
-        editor, gt_renderer = _editor(p, data_dir, dataset, instruction)      # fails fast on unusable data
-        jobs = _evaluation_cameras(original_dir, dataset)     # (group, name, c2w, (w, h), f_S render)
+        editor, ground_truth = _editor(p, data_dir, instruction, ctx.inputs.get("gtviews"))
+        jobs = evaluation_cameras(original_dir, dataset)      # (group, name, c2w, (w, h), f_S render)
 
         done = _resume(ctx, len(jobs))
         if done:
@@ -92,13 +87,9 @@ class PerFrameStage(Stage):
             for k, (group, name, c2w, size, render) in enumerate(jobs):
                 if k < len(done):
                     continue
-                if gt_renderer is not None:
-                    original, gt_edit, mask = gt_renderer(c2w, size)
+                if ground_truth is not None:
+                    original, gt_edit, mask = ground_truth(group, name)
                     edited = editor(render, original, gt_edit, mask, instruction, p.seed, k)
-                    _write_png(ctx.scratch_dir / "gt" / group / "original" / name, original)
-                    _write_png(ctx.scratch_dir / "gt" / group / "gt_edit" / name, gt_edit)
-                    _write_png(ctx.scratch_dir / "gt" / group / "gt_mask" / name,
-                               np.repeat(mask[..., None], 3, -1).astype(np.uint8) * 255)
                 else:
                     edited = editor(render, render, None, None, instruction, p.seed, k)
                 edited = to_uint8_image(to_float_image(edited, "edited image"))
@@ -110,12 +101,8 @@ class PerFrameStage(Stage):
         out = ctx.out_dir
         details = []
         for (group, name, *_), (edited, detail) in zip(jobs, done):
-            _write_png(out / group / "edited" / name, edited)
+            write_png(out / group / "edited" / name, edited)
             details.append({"group": group, "name": name, "editor_step": len(details), **detail})
-        if gt_renderer is not None:
-            import shutil
-
-            shutil.copytree(ctx.scratch_dir / "gt", out / "gt", dirs_exist_ok=True)
         identity = editor.identity
         (out / "edit.json").write_text(json.dumps({
             "method": "per-frame", "instruction": instruction, "edit_id": p.edit_id, "editor": identity,
@@ -166,39 +153,29 @@ class _Editor:
         return self.editor.edit(render, original, instruction, seed, step)
 
 
-def _editor(p: PerFrameParams, data_dir: Path, dataset, instruction: str):
-    """(editor callable, ground-truth renderer or None)."""
+def _editor(p: PerFrameParams, data_dir: Path, instruction: str, gtviews):
+    """(editor callable, ground-truth reader (group, name) -> (original, gt_edit, mask) or None)."""
     from dualnerf.editors import load_editor
 
     if p.editor == "ip2p":
         return _Editor(load_editor("ip2p", instruction=instruction, model=p.editor_model or None,
                                    device=p.device)), None
     from dualnerf.editors.emulator import EmulatorConfig
-    from dualnerf.scenes.spec import SceneSpecError
-    from dualnerf.scenes.views import SceneViewRenderer
+    from dualnerf.scenes.spec import load_scene_spec
+    from stages.gtviews import read_ground_truth
 
     if not p.edit_id:
         raise PerFrameError("perframe: editor 'synthetic' (the InstructPix2Pix emulator) needs edit_id, the "
                             "scene edit whose ground truth it emulates; or use editor 'ip2p'.")
-    try:
-        renderer = SceneViewRenderer(data_dir, dataset, supersample=p.scene_supersample)
-    except SceneSpecError as err:
-        raise PerFrameError(f"perframe: editor 'synthetic' needs the procedural scene behind {data_dir}: "
-                            f"{err} For real captures use editor 'ip2p'.") from None
-    spec = renderer.spec.edit(p.edit_id)
+    if gtviews is None:
+        raise PerFrameError("perframe: editor 'synthetic' (the InstructPix2Pix emulator) needs the 'gtviews' "
+                            "input (the scene's ground truth at the evaluation cameras); or use editor 'ip2p'.")
+    spec = load_scene_spec(data_dir).edit(p.edit_id)
     if instruction != spec.instruction:
         raise PerFrameError(f"perframe: the InstructPix2Pix emulator can only emulate edit '{p.edit_id}' "
                             f"('{spec.instruction}'), got instruction '{instruction}'; use editor 'ip2p'.")
-    emulator = _EmulatorPerView(p.edit_id, instruction, EmulatorConfig())
-
-    def render_gt(c2w, size):
-        from threadpoolctl import threadpool_limits
-
-        # The ray caster's small matrix products only contend with a threaded BLAS (see scenes.generate).
-        with threadpool_limits(limits=1, user_api="blas"):
-            return renderer.render(c2w, p.edit_id, size)
-
-    return emulator, render_gt
+    return (_EmulatorPerView(p.edit_id, instruction, EmulatorConfig()),
+            lambda group, name: read_ground_truth(Path(gtviews), group, name))
 
 
 def _scene_instruction(data_dir: Path, edit_id: str) -> str:
@@ -209,7 +186,7 @@ def _scene_instruction(data_dir: Path, edit_id: str) -> str:
     return load_scene_spec(data_dir).edit(edit_id).instruction
 
 
-def _evaluation_cameras(original_dir: Path, dataset) -> list[tuple]:
+def evaluation_cameras(original_dir: Path, dataset) -> list[tuple]:
     """Every image the evaluate stage scores: the path frames, then the fixed views, with their cameras
     (dataset frame), sizes and f_S renders, all read from the unedited evaluation."""
     import cv2
@@ -242,7 +219,7 @@ def _evaluation_cameras(original_dir: Path, dataset) -> list[tuple]:
     return jobs
 
 
-def _write_png(path: Path, image) -> None:
+def write_png(path: Path, image) -> None:
     import cv2
 
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -253,7 +230,7 @@ def _write_png(path: Path, image) -> None:
 def _checkpoint(ctx: StageContext, done: list) -> None:
     with ctx.checkpoint(len(done)) as folder:
         for k, (image, detail) in enumerate(done):
-            _write_png(folder / f"{k:05d}.png", image)
+            write_png(folder / f"{k:05d}.png", image)
         (folder / "details.json").write_text(json.dumps([d for _, d in done]))
 
 

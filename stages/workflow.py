@@ -344,11 +344,15 @@ def _expand(path: Path, settings: dict, stage_params: dict, axes_doc: dict) -> W
         upstream = {"dataset": preprocess, "fit": fit}
         if method.toggles is None:
             perframe_params = {**params_for("perframe"), **params_for("edit", grid.PERFRAME_FROM_EDIT),
-                               "instruction": captions["instruction"], "edit_id": edit_id, "seed": seed,
-                               "scene_supersample": int(scene_params.get("supersample", 0))}
+                               "instruction": captions["instruction"], "edit_id": edit_id, "seed": seed}
+            perframe_inputs = {"dataset": preprocess, "original": original}
+            if perframe_params.get("editor", "synthetic") == "synthetic":
+                # The emulator's ground truth at the evaluation cameras: one render per scene edit.
+                perframe_inputs["gtviews"] = builder.make(
+                    "gtviews", {"edit_id": edit_id, "scene_supersample": int(scene_params.get("supersample", 0))},
+                    {"dataset": preprocess, "original": original}, label=f"gtviews[{scene.name}/{edit_id}]")
             label = tag(method.label, f"seed {seed}")
-            perframe = builder.make("perframe", perframe_params, {"dataset": preprocess, "original": original},
-                                    label=f"perframe[{label}]")
+            perframe = builder.make("perframe", perframe_params, perframe_inputs, label=f"perframe[{label}]")
             evaluate = builder.make("evaluate", evaluate_common, {**upstream, "original": original,
                                                                   "perframe": perframe},
                                     label=f"evaluate[{label}]")

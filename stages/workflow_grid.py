@@ -43,8 +43,7 @@ SCALAR_TYPES = {"int", "float", "str", "bool"}
 # Parameters the workflow sets from its own axes and vocabulary (never a user axis or value).
 MANAGED = {"edit": {"dual_field": "methods", "annealing": "methods", "consistency": "methods",
                     "seed": "seeds", "edit_id": "edits", "instruction": "[workflow] instruction"},
-           "perframe": {"seed": "seeds", "edit_id": "edits", "instruction": "[workflow] instruction",
-                        "scene_supersample": "scene.supersample"},
+           "perframe": {"seed": "seeds", "edit_id": "edits", "instruction": "[workflow] instruction"},
            "evaluate": {"edit_id": "edits", "source_caption": "[workflow] source_caption",
                         "target_caption": "[workflow] target_caption"},
            "scene": {"name": "scenes"}}

@@ -8,6 +8,7 @@ import pytest
 
 from pipeline.context import StepContext
 from stages.evaluate import EvaluateParams, EvaluateStage
+from stages.gtviews import GroundTruthViewsParams, GroundTruthViewsStage
 from stages.perframe import PerFrameError, PerFrameParams, PerFrameStage
 from tests.test_evaluate import models  # noqa: F401  (the small random f_S / edit fixture)
 
@@ -75,8 +76,10 @@ def test_per_frame_baseline_edits_each_view_alone_and_is_scored_like_any_row(tmp
     evaluate = {"n_frames": 3, "edit_id": "snow", "path_scale": 0.5}
     original = _run(EvaluateStage(), EvaluateParams(**evaluate), {"dataset": tiny_dataset, "fit": models / "fit"},
                     "original", tmp_path)
+    gtviews = _run(GroundTruthViewsStage(), GroundTruthViewsParams(edit_id="snow"),
+                   {"dataset": tiny_dataset, "original": original}, "gtviews", tmp_path)
     perframe = _run(PerFrameStage(), PerFrameParams(edit_id="snow", seed=7),
-                    {"dataset": tiny_dataset, "original": original}, "perframe", tmp_path)
+                    {"dataset": tiny_dataset, "original": original, "gtviews": gtviews}, "perframe", tmp_path)
     names = json.loads((original / "metrics.json").read_text())["views"]["names"]
     doc = json.loads((perframe / "edit.json").read_text())
     assert doc["editor"]["is_simulator"] and doc["method"] == "per-frame"
@@ -86,11 +89,11 @@ def test_per_frame_baseline_edits_each_view_alone_and_is_scored_like_any_row(tmp
     for k, name in enumerate(names):
         # The re-rendered ground truth at the held-out camera is the scene's stored held-out view ...
         stored_edit, stored_mask = load_gt_edit(tiny_dataset, "snow", name)
-        gt_edit = _read(perframe / "gt" / "views" / "gt_edit" / name)
+        gt_edit = _read(gtviews / "views" / "gt_edit" / name)
         assert np.abs(gt_edit.astype(int) - stored_edit.astype(int)).mean() < 0.05
         # ... and the edited view is the emulator's output for f_S's render of that view alone, seed (7, k).
-        view_original = _read(perframe / "gt" / "views" / "original" / name)
-        mask = _read(perframe / "gt" / "views" / "gt_mask" / name)[..., 0] > 127
+        view_original = _read(gtviews / "views" / "original" / name)
+        mask = _read(gtviews / "views" / "gt_mask" / name)[..., 0] > 127
         assert (mask == stored_mask).mean() > 0.995
         emulator = InstructPix2PixEmulator([EmulatedView(view_original, gt_edit, mask)], instruction, "snow")
         expected = emulator.edit(_read(original / "views" / "original" / name), view_original, instruction,
@@ -121,5 +124,8 @@ def test_synthetic_per_frame_needs_a_procedural_scene(tmp_path, tiny_dataset):
     shutil.copytree(tiny_dataset, data)
     (data / "scene.toml").write_text((data / "scene.toml").read_text().replace('name = "tiny"', 'name = "mine"'))
     with pytest.raises(PerFrameError, match="not a procedural scene.*use editor 'ip2p'"):
+        _run(GroundTruthViewsStage(), GroundTruthViewsParams(edit_id="snow"),
+             {"dataset": data, "original": tmp_path / "unused"}, "gt", tmp_path)
+    with pytest.raises(PerFrameError, match="needs the 'gtviews' input"):
         _run(PerFrameStage(), PerFrameParams(edit_id="snow"), {"dataset": data, "original": tmp_path / "unused"},
              "pf", tmp_path)

@@ -39,6 +39,7 @@ def test_comparison_is_table1_over_every_library_scene_and_edit_but_tiny(tmp_pat
         if cell.label == "per-frame":
             assert cell.edit is None and cell.perframe.params["seed"] == cell.seed
             assert cell.evaluate.inputs["perframe"] is cell.perframe
+            assert cell.perframe.inputs["gtviews"].params["edit_id"] == cell.edit_id
         else:
             toggles = cell.edit.params["dual_field"], cell.edit.params["annealing"], cell.edit.params["consistency"]
             assert toggles == ((True,) * 3 if cell.label == "DualNeRF" else (False,) * 3)
@@ -157,6 +158,10 @@ def test_per_frame_rows_do_not_multiply_over_edit_only_axes():
     wf = load_workflow(WORKFLOWS / "comparison.toml", [NO_USER, "edit.editor=[\"synthetic\",\"ip2p\"]",
                                                        "methods=[\"per-frame\"]", "seeds=[0]"])
     assert {c.perframe.params["editor"] for c in wf.cells if c.perframe is not None} == {"synthetic", "ip2p"}
+    # only the emulator needs the ground truth re-rendered; it is one step per scene edit
+    assert {c.perframe.params["editor"]: "gtviews" in c.perframe.inputs for c in wf.cells if c.perframe} == \
+        {"synthetic": True, "ip2p": False}
+    assert len([s for s in wf.steps if s.stage == "gtviews"]) == len({(c.scene, c.edit_id) for c in wf.cells})
 
 
 def test_hundred_cell_grid_expands_with_shared_upstream():
@@ -197,8 +202,10 @@ def _fake(stage_name: str, real: str):
 
 _REAL = {"scene": "stages.scene:SceneStage", "preprocess": "stages.preprocess:PreprocessStage",
          "fit": "stages.fit:FitStage", "edit": "stages.edit:EditStage",
-         "perframe": "stages.perframe:PerFrameStage", "evaluate": "stages.evaluate:EvaluateStage"}
-FakeScene, FakePreprocess, FakeFit, FakeEdit, FakePerframe, FakeEvaluate = (_fake(n, ref) for n, ref in _REAL.items())
+         "perframe": "stages.perframe:PerFrameStage", "evaluate": "stages.evaluate:EvaluateStage",
+         "gtviews": "stages.gtviews:GroundTruthViewsStage"}
+FakeScene, FakePreprocess, FakeFit, FakeEdit, FakePerframe, FakeEvaluate, FakeGtviews = (
+    _fake(n, ref) for n, ref in _REAL.items())
 FAKES = {name: f"tests.test_workflow_grid:Fake{name.capitalize()}" for name in _REAL}
 
 
@@ -222,12 +229,12 @@ def test_rerun_and_added_seed_or_value_compute_only_new_cells(tmp_path, monkeypa
         return [json.loads(line) for line in log.read_text().splitlines()]
 
     first = run("w_max=[0.1]", "lambda=[0.005]")
-    assert sorted(e["stage"] for e in first) == ["edit", "evaluate", "evaluate", "evaluate", "fit",
+    assert sorted(e["stage"] for e in first) == ["edit", "evaluate", "evaluate", "evaluate", "fit", "gtviews",
                                                  "perframe", "preprocess", "scene"]
     assert run("w_max=[0.1]", "lambda=[0.005]") == [], "a rerun of a finished grid computes nothing"
     added_seed = run("w_max=[0.1]", "lambda=[0.005]", "seeds=[0,1]")
     assert sorted((e["stage"], e.get("seed")) for e in added_seed if e["stage"] != "evaluate") == [
-        ("edit", 1), ("perframe", 1)]
+        ("edit", 1), ("perframe", 1)]           # the ground-truth views are shared by the seeds
     assert len([e for e in added_seed if e["stage"] == "evaluate"]) == 2
     added_value = run("w_max=[0.1,0.3]", "lambda=[0.005]", "seeds=[0,1]")
     assert sorted((e["stage"], e.get("w_max_color")) for e in added_value) == [
