@@ -69,7 +69,8 @@ def _run(stage, params, inputs, out, tmp_path):
 
 
 @pytest.mark.slow
-def test_per_frame_baseline_edits_each_view_alone_and_is_scored_like_any_row(tmp_path, tiny_dataset, models):  # noqa: F811
+def test_per_frame_baseline_edits_each_view_alone_and_is_scored_like_any_row(tmp_path, tiny_dataset, models,  # noqa: F811
+                                                                            monkeypatch):
     from dualnerf.editors.emulator import EmulatedView, InstructPix2PixEmulator
     from dualnerf.scenes.spec import load_gt_edit, load_scene_spec
 
@@ -78,6 +79,21 @@ def test_per_frame_baseline_edits_each_view_alone_and_is_scored_like_any_row(tmp
                     "original", tmp_path)
     gtviews = _run(GroundTruthViewsStage(), GroundTruthViewsParams(edit_id="snow"),
                    {"dataset": tiny_dataset, "original": original}, "gtviews", tmp_path)
+    names = json.loads((original / "metrics.json").read_text())["views"]["names"]
+    # A killed gtviews step resumes from its scratch folder: only the unfinished view is rendered again.
+    from dualnerf.scenes.views import SceneViewRenderer
+
+    calls = []
+    real_render = SceneViewRenderer.render
+    monkeypatch.setattr(SceneViewRenderer, "render", lambda self, *a: calls.append(a) or real_render(self, *a))
+    (tmp_path / "scratch-gtviews" / "gt" / "views" / "gt_mask" / names[0]).unlink()
+    resumed = StepContext(key="test", params=GroundTruthViewsParams(edit_id="snow"),
+                          inputs={"dataset": tiny_dataset, "original": original}, out_dir=tmp_path / "gtviews2",
+                          scratch_dir=tmp_path / "scratch-gtviews", log=logging.getLogger("test-perframe"))
+    GroundTruthViewsStage().run(resumed)
+    assert len(calls) == 1
+    for file in sorted(p for p in gtviews.rglob("*.png")):
+        assert file.read_bytes() == (resumed.out_dir / file.relative_to(gtviews)).read_bytes()
     perframe = _run(PerFrameStage(), PerFrameParams(edit_id="snow", seed=7),
                     {"dataset": tiny_dataset, "original": original, "gtviews": gtviews}, "perframe", tmp_path)
     names = json.loads((original / "metrics.json").read_text())["views"]["names"]
