@@ -1,5 +1,6 @@
 """Engine overhead: a fully cached rerun of a 50-step DAG (target < 1 s), hashing a 100-image input
-folder (first time and memoised), and the cost of verifying a result's files on use.
+folder (first time and memoised), the cost of verifying a result's files on use, and expanding plus
+dry-running a 100-cell workflow grid (target < 1 s).
 
     python -m benchmarks.bench_pipeline
 """
@@ -130,8 +131,38 @@ def _measure(work: Path, rows: list[tuple[str, str]]) -> None:
         sizes = timed(lambda: store.problems(key, full=False))
         rows.append(("verify 100 MB result on use: sha256", f"{full * 1000:.0f} ms"))
         rows.append(("verify 100 MB result on use: sizes only", f"{sizes * 1000:.2f} ms"))
+        _measure_grid(work, rows)
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def _measure_grid(work: Path, rows: list[tuple[str, str]]) -> None:
+    """A 100-cell workflow grid (sweep_blend: 11 seeds x 3 w_max x 3 lambda + the original row) expanded
+    and dry-run (every step keyed, its state looked up) against an empty store; target < 1 s."""
+    from pipeline.dag import dry_run
+    from stages import STAGES
+    from stages.workflow import load_workflow
+
+    workflow = Path(__file__).resolve().parents[1] / "workflows" / "sweep_blend.toml"
+    overrides = ["scenes_dir=/nonexistent", "methods=[\"DualNeRF\"]", "exclude=[]",
+                 "seeds=[0,1,2,3,4,5,6,7,8,9,10]"]
+    store = Store(work / "grid-cache")
+    cells = len(load_workflow(workflow, overrides).cells)
+    expand = median_time(lambda: load_workflow(workflow, overrides))
+    both = median_time(lambda: dry_run(load_workflow(workflow, overrides).steps, registry=STAGES, store=store))
+    rows.append((f"{cells}-cell workflow grid: expand (median of 7)", f"{expand * 1000:.0f} ms"))
+    rows.append((f"{cells}-cell workflow grid: expand + dry-run (median of 7; target < 1 s)", f"{both * 1000:.0f} ms"))
+
+
+def median_time(func, repeat: int = 7) -> float:
+    import statistics
+
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        func()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
 
 
 if __name__ == "__main__":

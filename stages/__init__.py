@@ -7,4 +7,6 @@ STAGES = {
     "fit": "stages.fit:FitStage",
     "edit": "stages.edit:EditStage",
     "evaluate": "stages.evaluate:EvaluateStage",
+    "perframe": "stages.perframe:PerFrameStage",
+    "gtviews": "stages.gtviews:GroundTruthViewsStage",
 }

@@ -60,7 +60,9 @@ class EvaluateStage(Stage):
     Params = EvaluateParams
     # "original": the evaluate result of the unedited scene (same dataset and fit). Edited rows reuse its
     # f_S renders instead of rendering the same camera path again (the workflow passes it).
-    upstream = ("dataset", "fit", "edit", "original")
+    # "perframe": a per-frame baseline result (stages.perframe): its edited images are scored instead of
+    # an edited model's renders; it needs "original" and excludes "edit".
+    upstream = ("dataset", "fit", "edit", "original", "perframe")
     resources = Resources(cpus=2, gpus=0, memory_gb=3)
     nonsemantic_params = frozenset({"num_threads", "chunk"})
     packages = ("torch", "onnxruntime")
@@ -96,6 +98,9 @@ class EvaluateStage(Stage):
         data_dir = Path(ctx.inputs["dataset"])
         dataset = load_dataset(data_dir)
         edit_dir = ctx.inputs.get("edit")
+        per_frame = ctx.inputs.get("perframe")
+        if per_frame is not None and (edit_dir is not None or ctx.inputs.get("original") is None):
+            raise EvaluateError("evaluate: a 'perframe' input needs 'original' and no 'edit' input.")
         static = load_model(Path(ctx.inputs["fit"]) / "model", p.device).eval()
         edited = None if edit_dir is None else load_model(Path(edit_dir) / "model", p.device).eval()
         blend = None if edited is None else saved_blend(edited)
@@ -134,7 +139,7 @@ class EvaluateStage(Stage):
             view_split = "train"
             view_ids = train[np.round(np.linspace(0, len(train) - 1, min(FALLBACK_VIEWS, len(train)))).astype(int)]
         reused = None
-        if edited is not None and ctx.inputs.get("original") is not None:
+        if (edited is not None or per_frame is not None) and ctx.inputs.get("original") is not None:
             reused = _original_renders(Path(ctx.inputs["original"]), path.c2w, (path_width, path_height),
                                        [dataset.names[i] for i in view_ids])
             ctx.log.info("reusing the original scene's renders from %s", ctx.inputs["original"])
@@ -161,7 +166,10 @@ class EvaluateStage(Stage):
             (frames if group == "frames" else views)[kind].append(image)
         if reused is not None:
             frames["original"], views["original"] = reused
-        if edited is None:                    # the unedited scene: edited renders are the original ones
+        if per_frame is not None:             # the per-frame baseline: its independently edited images
+            frames["edited"], views["edited"] = _per_frame_images(Path(per_frame), len(path.c2w),
+                                                                  [dataset.names[i] for i in view_ids])
+        elif edited is None:                  # the unedited scene: edited renders are the original ones
             frames["edited"], views["edited"] = frames["original"], views["original"]
 
         out = ctx.out_dir
@@ -198,13 +206,13 @@ class EvaluateStage(Stage):
         if captions_note:
             notes["clip_text_image_direction"] = captions_note
         e_orig = _encode(encoder, frames["original"])
-        e_edit = e_orig if edited is None else _encode(encoder, frames["edited"])
+        e_edit = e_orig if edited is None and per_frame is None else _encode(encoder, frames["edited"])
         target = source = None
         if captions_note is None:
             target, source = encoder.encode_texts([edit_spec["target_caption"], edit_spec["source_caption"]])
         values.update(clip_metrics(e_edit, e_orig, target, source))
 
-        editor = _editor_identity(edit_dir)
+        editor = _editor_identity(edit_dir or per_frame)
         metrics_doc = {}
         for name, value in values.items():
             info = METRICS[name]
@@ -215,7 +223,7 @@ class EvaluateStage(Stage):
                 entry["note"] = notes[name]
             metrics_doc[name] = entry
         doc = {
-            "format": METRICS_FORMAT, "version": METRICS_VERSION, "edited": edited is not None,
+            "format": METRICS_FORMAT, "version": METRICS_VERSION, "edited": edited is not None or per_frame is not None,
             "encoder": {**encoder.identity, "tag": encoder_tag}, "editor": editor,
             "edit_id": p.edit_id, "source_caption": edit_spec["source_caption"],
             "target_caption": edit_spec["target_caption"], "render_blend": None if blend is None else list(blend),
@@ -228,7 +236,8 @@ class EvaluateStage(Stage):
                    camera_path=doc["camera_path"], views=doc["views"],
                    randomness="none: rendering uses bin-centre samples, no random draws")
         summary = ", ".join(f"{METRICS[k].symbol}={v:.4g}" for k, v in values.items() if np.isfinite(v))
-        ctx.log.info("evaluate (%s encoder %s): %s", "edited" if edited is not None else "original scene",
+        what = "per-frame baseline" if per_frame is not None else "edited" if edited is not None else "original scene"
+        ctx.log.info("evaluate (%s encoder %s): %s", what,
                      encoder_tag, summary)
 
 
@@ -255,6 +264,21 @@ def _original_renders(folder: Path, path_c2w, path_size, view_names) -> tuple[li
     frames = [read(folder / "frames" / "original" / f"{n:04d}.png") for n in range(len(path_c2w))]
     views = [read(folder / "views" / "original" / name) for name in view_names]
     return frames, views
+
+
+def _per_frame_images(folder: Path, n_frames: int, view_names) -> tuple[list, list]:
+    """The per-frame baseline's edited path frames and views (stages.perframe output layout)."""
+    import cv2
+
+    def read(file: Path):
+        image = cv2.imread(str(file), cv2.IMREAD_COLOR)
+        if image is None:
+            raise EvaluateError(f"{file} is missing or unreadable; the per-frame result does not match this "
+                                f"evaluation's camera path and views (rerun the perframe step).")
+        return np.ascontiguousarray(image[..., ::-1])
+
+    return ([read(folder / "frames" / "edited" / f"{n:04d}.png") for n in range(n_frames)],
+            [read(folder / "views" / "edited" / name) for name in view_names])
 
 
 def _write_png(path: Path, image) -> None:

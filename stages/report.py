@@ -48,6 +48,9 @@ class ReportRow:
     seed: int | None
     evaluate_dir: Path
     edit_dir: Path | None = None
+    scene: str = ""
+    edit: str = ""                     # the scene edit id
+    params: tuple = ()                 # parameter-axis values of this row: ((axis name, value), ...)
 
     @property
     def is_original(self) -> bool:

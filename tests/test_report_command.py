@@ -104,3 +104,22 @@ def test_missing_results_are_named(setup):
     workflow, store, _keys, _ = setup
     with pytest.raises(ReportError, match=r"evaluate\[baseline\], evaluate\[DF\+SA\+CCI\]"):
         workflow_rows(workflow, store)
+
+
+def test_rows_carry_scene_edit_method_seed_and_axis_values(setup):
+    """The report interface for grids: each row names its scene, edit, method label, seed and the
+    parameter-axis values of its cell."""
+    import dataclasses
+
+    workflow, store, keys, values = setup
+    for cell in workflow.cells[1:]:
+        _publish(store, keys[cell.evaluate].key,
+                 lambda f, v=values[cell.label]: make_evaluate(f, {"clip_text_image_direction": v}, (200, 200, 200)))
+    workflow.cells = [dataclasses.replace(c, scene="tiny", edit_id="snow",
+                                          params=() if c.variant is None else (("w_max", 0.3),))
+                      for c in workflow.cells]
+    rows = workflow_rows(workflow, store)
+    assert [(r.scene, r.edit, r.label, r.seed, r.params) for r in rows] == [
+        ("tiny", "snow", "Original scene", None, ()), ("tiny", "snow", "baseline", 0, (("w_max", 0.3),)),
+        ("tiny", "snow", "DF+SA+CCI", 0, (("w_max", 0.3),))]
+    hash(rows[1])                            # rows stay frozen and hashable

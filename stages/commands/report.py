@@ -54,7 +54,8 @@ def workflow_rows(workflow, store) -> list:
             annealing=None if variant is None else variant.annealing,
             consistency=None if variant is None else variant.consistency,
             seed=cell.seed, evaluate_dir=Path(found[cell.evaluate]),
-            edit_dir=None if cell.edit is None else found.get(cell.edit)))
+            edit_dir=None if cell.edit is None else found.get(cell.edit),
+            scene=cell.scene, edit=cell.edit_id, params=tuple(cell.params)))
     return rows
 
 
@@ -66,5 +67,8 @@ def report_workflow(workflow, store, out_dir: Path | None = None) -> Path:
                   "scene": f"{workflow.scene_name} ({workflow.scene_origin})",
                   "edit": workflow.edit_id, "instruction": workflow.instruction,
                   "source caption": workflow.source_caption, "target caption": workflow.target_caption}
+    if len(workflow.scenes) > 1 or len({c.edit_id for c in workflow.cells}) > 1:
+        title_info = {"workflow": title_info["workflow"], "scenes": ", ".join(workflow.scenes),
+                      "scene edits": ", ".join(sorted({f"{c.scene}/{c.edit_id}" for c in workflow.cells}))}
     return build_report(workflow_rows(workflow, store), Path(out_dir or workflow.report_dir),
                         title_info=title_info)

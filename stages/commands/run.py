@@ -58,6 +58,8 @@ def _run(args: argparse.Namespace) -> int:
     _print_banner(workflow)
     if args.dry_run:
         rows = dry_run(workflow.steps, registry=STAGES, store=store)
+        print_grid(workflow)
+        print(f"steps ({len(rows)}, shared ones once):")
         width = max(len(label) for label, _, _ in rows)
         for label, key, state in rows:
             print(f"  {label.ljust(width)}  {key}  {state}")
@@ -89,12 +91,26 @@ def _run(args: argparse.Namespace) -> int:
     return 1 if result.failed else 0
 
 
+def print_grid(workflow) -> None:
+    """The grid's size per axis and every cell (one report row each)."""
+    sizes = " x ".join(f"{n} {name}" for name, n in workflow.axes)
+    print(f"grid: {len(workflow.cells)} cells ({sizes}; after filters, shared rows once):")
+    for n, cell in enumerate(workflow.cells):
+        print(f"  [{n}] {cell.describe()}")
+
+
 def _print_banner(workflow) -> None:
-    edit = workflow.cells[-1].edit
-    editor = edit.params.get("editor", "synthetic") if edit is not None else "-"
-    encoder = edit.params.get("encoder", "proxy") if edit is not None else "-"
-    print(f"workflow {workflow.name}: scene '{workflow.scene_name}' ({workflow.scene_origin}), edit "
-          f"'{workflow.edit_id}': \"{workflow.instruction}\"; {len(workflow.cells) - 1} edited cells + original")
+    step = next((c.edit or c.perframe for c in reversed(workflow.cells) if (c.edit or c.perframe)), None)
+    editor = step.params.get("editor", "synthetic") if step is not None else "-"
+    encoder = workflow.cells[-1].evaluate.params.get("encoder", "proxy")
+    edited = sum(1 for c in workflow.cells if c.variant is not None)
+    if len(workflow.scenes) <= 1 and len({c.edit_id for c in workflow.cells}) == 1:
+        print(f"workflow {workflow.name}: scene '{workflow.scene_name}' ({workflow.scene_origin}), edit "
+              f"'{workflow.edit_id}': \"{workflow.instruction}\"; {edited} edited cells + original")
+    else:
+        print(f"workflow {workflow.name}: {len(workflow.scenes)} scene(s) ({', '.join(workflow.scenes)}), "
+              f"{len({(c.scene, c.edit_id) for c in workflow.cells})} scene edit(s); {edited} edited cells + "
+              f"{len(workflow.cells) - edited} original")
     if editor == "synthetic":
         print("  editor: synthetic InstructPix2Pix EMULATOR (a simulator, not the diffusion model)")
     if encoder == "proxy":

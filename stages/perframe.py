@@ -1,0 +1,252 @@
+"""Stage "perframe": the per-frame InstructPix2Pix baseline (paper Table 1, first row). No 3D editing:
+every evaluation view (the camera-path frames and the fixed views of the unedited evaluation) is the
+editor's output for f_S's render of that view, edited independently of all others. The evaluate stage
+then scores these images with the same metrics as every other row (its "perframe" input).
+
+Inputs: "dataset" (preprocess result), "original" (the unedited scene's evaluate result: its f_S renders,
+camera path and view names, so the baseline edits exactly the images the other rows are compared on)
+and, for the emulator, "gtviews" (stages.gtviews: the scene re-rendered, original and edited, at those
+cameras).
+
+Editors: "ip2p" is the real baseline (InstructPix2Pix conditioned on, and starting from, f_S's render).
+"synthetic" is the InstructPix2Pix EMULATOR (a simulator), built per view from that view's ground truth.
+
+Outputs:
+    frames/edited/0000.png ...     the edited path frames
+    views/edited/<name>            the edited fixed views
+    edit.json                      method, editor identity (simulator flag), instruction, seeds, per-image
+                                   editor details
+
+Editor seeds: image k (path frames first, then views) is edited with seed `seed` and step k, i.e. the
+editor's generator is seeded by (seed, k); recorded in the manifest.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.stage import Resources, Stage, StageContext
+
+CHECKPOINT_EVERY = 16          # edited images between in-stage checkpoints
+
+
+class PerFrameError(ValueError):
+    """A per-frame input or parameter that cannot be used; the message says what to change."""
+
+    user_error = True
+
+
+@dataclass(frozen=True)
+class PerFrameParams:
+    instruction: str = ""          # default: the edit's instruction from the dataset's scene.toml
+    edit_id: str = ""              # the scene edit (the emulator's ground truth)
+    editor: str = "synthetic"      # "synthetic" (InstructPix2Pix EMULATOR, a simulator) or "ip2p"
+    editor_model: str = ""         # ip2p: local diffusers folder or hub id
+    seed: int = 0
+    device: str = "cpu"
+    num_threads: int = 0           # non-semantic; 0: the threads the engine grants
+
+
+class PerFrameStage(Stage):
+    name = "perframe"
+    version = "1"
+    Params = PerFrameParams
+    upstream = ("dataset", "original", "gtviews")
+    resources = Resources(cpus=2, gpus=0, memory_gb=3)
+    nonsemantic_params = frozenset({"num_threads"})
+    packages = ("torch", "numpy", "opencv-contrib-python-headless", "diffusers", "transformers")
+
+    def run(self, ctx: StageContext) -> None:
+        import torch
+
+        from dualnerf.dataset import load_dataset
+        from dualnerf.editors import EDITOR_KINDS, to_float_image, to_uint8_image
+
+        p = ctx.params
+        if p.editor not in EDITOR_KINDS:
+            raise PerFrameError(f"perframe: unknown editor '{p.editor}'; choose one of {', '.join(EDITOR_KINDS)}.")
+        if "original" not in ctx.inputs or "dataset" not in ctx.inputs:
+            raise PerFrameError("perframe needs the inputs 'dataset' and 'original' (the unedited evaluation).")
+        torch.set_num_threads(max(1, p.num_threads or ctx.threads))
+        data_dir, original_dir = Path(ctx.inputs["dataset"]), Path(ctx.inputs["original"])
+        dataset = load_dataset(data_dir)
+        instruction = p.instruction or _scene_instruction(data_dir, p.edit_id)
+        if not instruction:
+            raise PerFrameError(f"perframe: no instruction; set 'instruction', or 'edit_id' naming an edit of "
+                                f"{data_dir / 'scene.toml'}.")
+        editor, ground_truth = _editor(p, data_dir, instruction, ctx.inputs.get("gtviews"))
+        jobs = evaluation_cameras(original_dir, dataset)      # (group, name, c2w, (w, h), f_S render)
+
+        done = _resume(ctx, len(jobs))
+        if done:
+            ctx.log.info("resuming after %d of %d edited images (checkpoint)", len(done), len(jobs))
+        with ctx.progress(len(jobs), f"per-frame {p.editor} edits", initial=len(done)) as bar:
+            for k, (group, name, c2w, size, render) in enumerate(jobs):
+                if k < len(done):
+                    continue
+                if ground_truth is not None:
+                    original, gt_edit, mask = ground_truth(group, name)
+                    edited = editor(render, original, gt_edit, mask, instruction, p.seed, k)
+                else:
+                    edited = editor(render, render, None, None, instruction, p.seed, k)
+                edited = to_uint8_image(to_float_image(edited, "edited image"))
+                done.append((edited, dict(editor.last_details)))
+                bar.update()
+                if len(done) % CHECKPOINT_EVERY == 0 and len(done) < len(jobs):
+                    _checkpoint(ctx, done)
+
+        out = ctx.out_dir
+        details = []
+        for (group, name, *_), (edited, detail) in zip(jobs, done):
+            write_png(out / group / "edited" / name, edited)
+            details.append({"group": group, "name": name, "editor_step": len(details), **detail})
+        identity = editor.identity
+        (out / "edit.json").write_text(json.dumps({
+            "method": "per-frame", "instruction": instruction, "edit_id": p.edit_id, "editor": identity,
+            "editor_is_simulator": bool(identity.get("is_simulator")), "params": asdict(p),
+            "images": details}, indent=1))
+        ctx.record(editor=identity, editor_is_simulator=bool(identity.get("is_simulator")),
+                   seeds={"seed": p.seed, "editor_seed": "(seed, k) for image k: path frames, then views"},
+                   images=len(jobs))
+        if identity.get("is_simulator"):
+            ctx.log.info("per-frame editor: InstructPix2PixEmulator (a SIMULATOR of InstructPix2Pix)")
+
+
+class _EmulatorPerView:
+    """The InstructPix2Pix emulator for one view at a time, from ground truth rendered for that view."""
+
+    def __init__(self, edit_id: str, instruction: str, config):
+        from dualnerf.editors.emulator import InstructPix2PixEmulator
+
+        self.edit_id = edit_id
+        self.config = config
+        self.last_details: dict = {}
+        self.identity = {**InstructPix2PixEmulator([], instruction, edit_id, config).identity,
+                         "use": "per-frame: built per view from ground truth rendered at that view"}
+
+    def __call__(self, render, original, gt_edit, mask, instruction, seed, step):
+        from dualnerf.editors.emulator import EmulatedView, InstructPix2PixEmulator
+
+        emulator = InstructPix2PixEmulator([EmulatedView(original, gt_edit, mask)], instruction,
+                                           self.edit_id, self.config)
+        edited = emulator.edit(render, original, instruction, seed, step)
+        self.last_details = emulator.last_details
+        return edited
+
+
+class _Editor:
+    def __init__(self, editor):
+        self.editor = editor
+
+    @property
+    def identity(self) -> dict:
+        return self.editor.identity
+
+    @property
+    def last_details(self) -> dict:
+        return self.editor.last_details
+
+    def __call__(self, render, original, gt_edit, mask, instruction, seed, step):
+        return self.editor.edit(render, original, instruction, seed, step)
+
+
+def _editor(p: PerFrameParams, data_dir: Path, instruction: str, gtviews):
+    """(editor callable, ground-truth reader (group, name) -> (original, gt_edit, mask) or None)."""
+    from dualnerf.editors import load_editor
+
+    if p.editor == "ip2p":
+        return _Editor(load_editor("ip2p", instruction=instruction, model=p.editor_model or None,
+                                   device=p.device)), None
+    from dualnerf.editors.emulator import EmulatorConfig
+    from dualnerf.scenes.spec import load_scene_spec
+    from stages.gtviews import read_ground_truth
+
+    if not p.edit_id:
+        raise PerFrameError("perframe: editor 'synthetic' (the InstructPix2Pix emulator) needs edit_id, the "
+                            "scene edit whose ground truth it emulates; or use editor 'ip2p'.")
+    if gtviews is None:
+        raise PerFrameError("perframe: editor 'synthetic' (the InstructPix2Pix emulator) needs the 'gtviews' "
+                            "input (the scene's ground truth at the evaluation cameras); or use editor 'ip2p'.")
+    spec = load_scene_spec(data_dir).edit(p.edit_id)
+    if instruction != spec.instruction:
+        raise PerFrameError(f"perframe: the InstructPix2Pix emulator can only emulate edit '{p.edit_id}' "
+                            f"('{spec.instruction}'), got instruction '{instruction}'; use editor 'ip2p'.")
+    return (_EmulatorPerView(p.edit_id, instruction, EmulatorConfig()),
+            lambda group, name: read_ground_truth(Path(gtviews), group, name))
+
+
+def _scene_instruction(data_dir: Path, edit_id: str) -> str:
+    if not edit_id or not (data_dir / "scene.toml").is_file():
+        return ""
+    from dualnerf.scenes.spec import load_scene_spec
+
+    return load_scene_spec(data_dir).edit(edit_id).instruction
+
+
+def evaluation_cameras(original_dir: Path, dataset) -> list[tuple]:
+    """Every image the evaluate stage scores: the path frames, then the fixed views, with their cameras
+    (dataset frame), sizes and f_S renders, all read from the unedited evaluation."""
+    import cv2
+
+    try:
+        path = json.loads((original_dir / "camera_path.json").read_text())
+        metrics = json.loads((original_dir / "metrics.json").read_text())
+    except (FileNotFoundError, json.JSONDecodeError) as err:
+        raise PerFrameError(f"{original_dir} is not an evaluate result ({err}); the 'original' input must be "
+                            f"the unedited scene's evaluation.") from None
+    if metrics.get("edited"):
+        raise PerFrameError(f"{original_dir} evaluates an edited model; 'original' must be the unedited scene.")
+
+    def read(file: Path):
+        image = cv2.imread(str(file), cv2.IMREAD_COLOR)
+        if image is None:
+            raise PerFrameError(f"{file} is missing or unreadable; rerun the unedited-scene evaluation.")
+        return np.ascontiguousarray(image[..., ::-1])
+
+    size = (int(path["width"]), int(path["height"]))
+    jobs = [("frames", f"{n:04d}.png", np.asarray(c2w), size, read(original_dir / "frames" / "original" / f"{n:04d}.png"))
+            for n, c2w in enumerate(path["c2w"])]
+    index = {name: i for i, name in enumerate(dataset.names)}
+    for name in metrics["views"]["names"]:
+        if name not in index:
+            raise PerFrameError(f"view {name} of {original_dir} is not in the dataset; 'original' must come "
+                                f"from the same dataset.")
+        jobs.append(("views", name, dataset.c2w[index[name]], (dataset.width, dataset.height),
+                     read(original_dir / "views" / "original" / name)))
+    return jobs
+
+
+def write_png(path: Path, image) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), np.ascontiguousarray(image[..., ::-1])):
+        raise OSError(f"could not write {path}")
+
+
+def _checkpoint(ctx: StageContext, done: list) -> None:
+    with ctx.checkpoint(len(done)) as folder:
+        for k, (image, detail) in enumerate(done):
+            write_png(folder / f"{k:05d}.png", image)
+        (folder / "details.json").write_text(json.dumps([d for _, d in done]))
+
+
+def _resume(ctx: StageContext, total: int) -> list:
+    import cv2
+
+    latest = ctx.latest_checkpoint()
+    if latest is None:
+        return []
+    step, folder = latest
+    details = json.loads((folder / "details.json").read_text())
+    done = []
+    for k in range(min(step, total)):
+        image = cv2.imread(str(folder / f"{k:05d}.png"), cv2.IMREAD_COLOR)
+        if image is None:
+            ctx.log.warning("checkpoint %s is incomplete; editing from the start", folder)
+            return []
+        done.append((np.ascontiguousarray(image[..., ::-1]), details[k]))
+    return done
