@@ -10,6 +10,7 @@ import pytest
 
 from stages import report as R
 from tests.test_report import make_evaluate
+from tests.test_report_command import setup  # noqa: F401  (fixture)
 
 METRIC = "clip_text_image_direction"
 SCENES = ("tiny", "room")
@@ -152,3 +153,18 @@ def test_infinite_values_have_no_interval(tmp_path):
     # The seedless row pairs with each of the reference's three seeds; all three are left out as non-finite.
     assert paired["n_pairs"] == 0 and paired["mean"] is None and len(paired["non_finite"]) == 3
     assert "| Original Scene | 0 | n/a |" in (tmp_path / "r" / "table.md").read_text()
+
+
+def test_report_workflow_passes_the_reference_on(setup, tmp_path):  # noqa: F811 (the fixture)
+    from stages.commands.report import report_workflow
+    from tests.test_report_command import _publish
+
+    workflow, store, keys, values = setup
+    for cell in workflow.cells[1:]:
+        _publish(store, keys[cell.evaluate].key,
+                 lambda f, v=values[cell.label]: make_evaluate(f, {METRIC: v}, (200, 200, 200)))
+    report_workflow(workflow, store, tmp_path / "r", reference="DF+SA+CCI")
+    doc = json.loads((tmp_path / "r" / "table.json").read_text())
+    assert doc["paired"]["reference"] == "DF+SA+CCI"
+    baseline = _by_label(doc)[("baseline", ())]["metrics"][METRIC]["paired"]
+    assert baseline["mean"] == pytest.approx(-0.1) and baseline["n_pairs"] == 1 and baseline["ci_low"] is None
