@@ -307,7 +307,8 @@ def write_image_grid(rows: list[ReportRow], docs: list[dict], path: Path) -> lis
     if any(image is not None for image in gt):
         grid.append(("GT edit", gt))
     for row in _first_per_variant(rows):
-        grid.append((row.label, [_read_rgb(row.evaluate_dir / "views" / "edited" / n) for n in names]))
+        grid.append((RS.display_label(row.label, row.params),
+                     [_read_rgb(row.evaluate_dir / "views" / "edited" / n) for n in names]))
     _plot_grid(grid, names, path)
     return [label for label, _ in grid]
 
@@ -323,7 +324,8 @@ def write_path_strip(rows: list[ReportRow], path: Path) -> list[str] | None:
     names = [f"{i:04d}.png" for i in picks]
     grid = [("Original", [_read_rgb(source / n) for n in names])]
     for row in _first_per_variant(rows):
-        grid.append((row.label, [_read_rgb(row.evaluate_dir / "frames" / "edited" / n) for n in names]))
+        grid.append((RS.display_label(row.label, row.params),
+                     [_read_rgb(row.evaluate_dir / "frames" / "edited" / n) for n in names]))
     _plot_grid(grid, [f"frame {i}" for i in picks], path)
     return [label for label, _ in grid]
 

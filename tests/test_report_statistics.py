@@ -100,6 +100,10 @@ def test_per_scene_tables_beside_the_aggregate(tmp_path):
     page = (out / "index.html").read_text()
     assert "Per scene and edit" in page and "<h3>tiny / snow</h3>" in page
     assert "scenes/tiny_snow/table.md" in page and (out / "scenes" / "room_snow" / "table.csv").is_file()
+    # Images show one scene (the first), each parameter setting as its own row; 'room only' is not there.
+    assert report["path_strip_rows"] == ["Original", "baseline", "same", "shifted", "sweep [edit.w_max_color=0.1]",
+                                         "sweep [edit.w_max_color=0.3]"]
+    assert len(report["videos"]) == len(set(report["videos"])) == 2 * 3 * 5 + 3    # distinct names per unit
 
 
 def test_parameter_axis_plot(tmp_path):
