@@ -31,6 +31,12 @@ def write_mp4(frames: Iterable[np.ndarray], path: Path, fps: float = 24.0) -> Pa
     import av
 
     path = Path(path)
+    try:
+        av.codec.Codec(CODEC, "w")
+    except ValueError:           # av.codec.codec.UnknownCodecError is a ValueError
+        raise VideoError(f"this PyAV build ({av.__version__}) has no {CODEC} encoder, so {path} cannot be "
+                         f"written as browser-playable H.264; install PyAV's own wheel from PyPI "
+                         f"(pip install --force-reinstall 'av>=14'), which bundles libx264.") from None
     container = stream = size = None
     count = 0
     try:

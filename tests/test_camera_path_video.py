@@ -43,3 +43,15 @@ def test_mp4_rejects_bad_frames(tmp_path):
         write_mp4([], tmp_path / "c.mp4")
     # A failure part-way leaves no partial file behind.
     assert not (tmp_path / "a.mp4").exists() and not (tmp_path / "c.mp4").exists()
+
+
+def test_a_pyav_without_libx264_is_a_clear_error(tmp_path, monkeypatch):
+    import av
+
+    def no_such_codec(name, mode="r"):
+        raise av.codec.codec.UnknownCodecError(name)
+
+    monkeypatch.setattr(av.codec, "Codec", no_such_codec)
+    with pytest.raises(VideoError, match="no libx264 encoder"):
+        write_mp4([np.zeros((16, 16, 3), np.uint8)], tmp_path / "a.mp4")
+    assert not (tmp_path / "a.mp4").exists()
