@@ -566,7 +566,7 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict, refe
     paired, reference_label = _paired(rows, docs, table, columns, reference)
     table_doc = write_tables(columns, table, docs, out_dir, paired, reference_label)
     per_scene = _per_scene_tables(rows, docs, reference, out_dir)
-    param_plots = RS.write_parameter_plots(table, columns, out_dir)
+    param_plots = RS.write_parameter_plots(table, columns, out_dir, reference_label)
     scene_edits = RS.scene_edits(rows)
     shown = [i for i, r in enumerate(rows) if (r.scene, r.edit) == scene_edits[0]]   # images: one scene
     grid_labels = write_image_grid([rows[i] for i in shown], [docs[i] for i in shown], out_dir / "grid.png")

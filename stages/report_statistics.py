@@ -164,9 +164,10 @@ def _axis_value(value):
         return None
 
 
-def write_parameter_plots(table, columns, out_dir: Path) -> list[str]:
+def write_parameter_plots(table, columns, out_dir: Path, reference: str | None = None) -> list[str]:
     """One figure per parameter axis: each metric (a panel) against the parameter's value, mean ± std over
-    seeds as error bars, one line per method label and setting of the other axes."""
+    seeds as error bars, one line per method label and setting of the other axes. A `reference` row that
+    does not vary along the axis is drawn as a dashed level with a ±std band."""
     keys = parameter_keys(table)
     if not keys or not columns:
         return []
@@ -185,6 +186,7 @@ def write_parameter_plots(table, columns, out_dir: Path) -> list[str]:
             rest = tuple((k, v) for k, v in trow.params if k != key)
             series.setdefault((trow.label, rest), []).append((params[key], trow))
         values = list(dict.fromkeys(v for points in series.values() for v, _ in points))
+        levels = [t for t in table if t.label == reference and key not in dict(t.params)]
         numeric = all(_axis_value(v) is not None for v in values)
         position = {v: (_axis_value(v) if numeric else i) for i, v in enumerate(values)}
         width = min(4, len(columns))
@@ -200,6 +202,11 @@ def write_parameter_plots(table, columns, out_dir: Path) -> list[str]:
                     continue
                 ax.errorbar(x, y, yerr=err, marker="o", markersize=3, capsize=3,
                             label=display_label(label, rest))
+            if len(levels) == 1 and np.isfinite(levels[0].mean[column]):
+                level, spread = levels[0].mean[column], levels[0].std[column]
+                ax.axhline(level, linestyle="--", color="0.4", label=f"{reference} (reference)")
+                if np.isfinite(spread):
+                    ax.axhspan(level - spread, level + spread, color="0.6", alpha=0.2)
             info = METRICS[column]
             ax.set_title(f"{info.symbol} {'↑' if info.higher_is_better else '↓'}", fontsize=9)
             ax.set_xlabel(key, fontsize=8)
