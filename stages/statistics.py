@@ -16,6 +16,7 @@ Pure numpy, no plotting, no files. Definitions (also in docs/metrics.md):
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass
@@ -82,13 +83,20 @@ def bootstrap_mean_interval(differences: np.ndarray, *, resamples: int = BOOTSTR
         raise ValueError(f"need a non-empty 1-D array of differences, got shape {differences.shape}")
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must be in (0, 1), got {level}")
-    rng = np.random.default_rng(seed)
-    picks = rng.integers(0, differences.size, size=(resamples, differences.size))
-    means = differences[picks].mean(axis=1)
+    means = differences[_resample_indices(differences.size, resamples, seed)].mean(axis=1)
     low, high = np.quantile(means, [(1.0 - level) / 2.0, (1.0 + level) / 2.0])
     # Every resampled mean of a constant vector is that constant up to rounding: keep it exact.
     low, high = max(float(low), float(differences.min())), min(float(high), float(differences.max()))
     return low, high
+
+
+@functools.lru_cache(maxsize=8)
+def _resample_indices(n: int, resamples: int, seed: int) -> np.ndarray:
+    """The B x n unit indices of default_rng(seed): the same for every comparison with n units, so they
+    are drawn once (read-only) instead of once per row and metric."""
+    picks = np.random.default_rng(seed).integers(0, n, size=(resamples, n))
+    picks.setflags(write=False)
+    return picks
 
 
 def _expand_seedless(values: Mapping[Unit, float], reference: Mapping[Unit, float]) -> dict[Unit, float]:
