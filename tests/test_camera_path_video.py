@@ -1,9 +1,11 @@
 """mp4 writing: a browser-playable file (H.264, yuv420p, faststart) that decodes back to the frames written
 (count, size, approximate colours), byte-identical when written twice."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from dualnerf.video import VideoError, probe_video, write_mp4
+from dualnerf.video import VideoError, probe_video, rgb_to_yuv420p, write_mp4
 
 
 def test_mp4_round_trip(tmp_path):
@@ -55,3 +57,34 @@ def test_a_pyav_without_libx264_is_a_clear_error(tmp_path, monkeypatch):
     with pytest.raises(VideoError, match="no libx264 encoder"):
         write_mp4([np.zeros((16, 16, 3), np.uint8)], tmp_path / "a.mp4")
     assert not (tmp_path / "a.mp4").exists()
+
+
+def test_rgb_to_yuv420p_matches_the_bt601_limited_range_formula():
+    # ITU-R BT.601: Y' = 0.299 R + 0.587 G + 0.114 B; Y = 16 + 219 Y'/255, Cb = 128 + 224 (B - Y')/(1.772 * 255),
+    # Cr = 128 + 224 (R - Y')/(1.402 * 255); 8-bit integer coefficients stay within one level of it.
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (8, 10, 3)).astype(np.uint8)
+    planes = rgb_to_yuv420p(rgb).astype(float)
+    assert planes.shape == (12, 10)
+    x = rgb.astype(float)
+    luma = 0.299 * x[..., 0] + 0.587 * x[..., 1] + 0.114 * x[..., 2]
+    np.testing.assert_allclose(planes[:8], 16 + 219 * luma / 255, atol=1.0)
+    mean = lambda c: (c[0::2, 0::2] + c[1::2, 0::2] + c[0::2, 1::2] + c[1::2, 1::2]) / 4
+    cb = 128 + 224 * (mean(x[..., 2]) - mean(luma)) / (1.772 * 255)
+    cr = 128 + 224 * (mean(x[..., 0]) - mean(luma)) / (1.402 * 255)
+    np.testing.assert_allclose(planes[8:10].reshape(4, 5), cb, atol=1.0)
+    np.testing.assert_allclose(planes[10:12].reshape(4, 5), cr, atol=1.0)
+    white, black = (rgb_to_yuv420p(np.full((2, 2, 3), v, np.uint8)).ravel().tolist() for v in (255, 0))
+    assert white == [235] * 4 + [128, 128] and black == [16] * 4 + [128, 128]
+
+
+def test_small_clips_encode_to_identical_bytes_every_time(tmp_path):
+    # Four 32x24 camera-path frames of the tiny scene (an evaluate result's frames/edited/, stacked): with
+    # FFmpeg's own RGB -> YUV conversion, 20 writes of them gave 2-3 different files.
+    import cv2
+
+    strip = cv2.imread(str(Path(__file__).parent / "data" / "tiny_path_frames.png"))[..., ::-1]
+    frames = [np.ascontiguousarray(f) for f in np.split(strip, 4, axis=0)]
+    written = {write_mp4(frames, tmp_path / f"{i}.mp4").read_bytes() for i in range(20)}
+    assert len(written) == 1
+    assert probe_video(tmp_path / "0.mp4")["frames"] == 4
