@@ -1,7 +1,7 @@
 """`python -m stages.check_smoke REPORT_DIR`: the smoke run's acceptance check (used by `make smoke`).
 
 Fails (exit 1, naming what is wrong) unless the report has index.html, the grid and a table whose every
-row has a finite value in every metric column that applies to it."""
+row has a finite value in every metric column that applies to it, and browser-playable videos."""
 from __future__ import annotations
 
 import json
@@ -28,6 +28,20 @@ def problems(report_dir: Path) -> list[str]:
                 continue      # e.g. edit-vs-original metrics are undefined for the original row
             if not isinstance(value, (int, float)) or not math.isfinite(value):
                 found.append(f"row '{row['label']}': metric {column} is {value!r}, not a finite number")
+    found += _video_problems(report_dir)
+    return found
+
+
+def _video_problems(report_dir: Path) -> list[str]:
+    """Every camera-path video must be what browsers play: H.264 in yuv420p with at least one frame."""
+    from dualnerf.video import probe_video
+
+    found = []
+    for path in sorted((report_dir / "videos").glob("*.mp4")):
+        info = probe_video(path)
+        if (info["codec"], info["pix_fmt"]) != ("h264", "yuv420p") or info["frames"] < 1:
+            found.append(f"{path} is {info['codec']}/{info['pix_fmt']} with {info['frames']} frames; "
+                         f"browsers need h264/yuv420p (rerun evaluate, version 3 writes it)")
     return found
 
 

@@ -10,7 +10,7 @@ Outputs:
                                       encoder that produced it (proxy numbers are tagged "proxy")
     frames/original/0000.png ...      path renders of f_S
     frames/edited/0000.png ...        path renders of the edited model
-    path.mp4                          the edited path video (mp4v)
+    path.mp4                          the edited path video (H.264, plays in browsers)
     views/{original,edited}/<name>    renders at the fixed views (held-out frames; training frames if
     views/{gt_edit,gt_mask}/<name>    the dataset holds none out), plus ground truth where it exists
     camera_path.json                  the path's c2w matrices and how it was built
@@ -56,7 +56,7 @@ class EvaluateParams:
 
 class EvaluateStage(Stage):
     name = "evaluate"
-    version = "2"
+    version = "3"                       # 3: path.mp4 is H.264 (was mp4v); metrics unchanged
     Params = EvaluateParams
     # "original": the evaluate result of the unedited scene (same dataset and fit). Edited rows reuse its
     # f_S renders instead of rendering the same camera path again (the workflow passes it).
@@ -65,7 +65,7 @@ class EvaluateStage(Stage):
     upstream = ("dataset", "fit", "edit", "original", "perframe")
     resources = Resources(cpus=2, gpus=0, memory_gb=3)
     nonsemantic_params = frozenset({"num_threads", "chunk"})
-    packages = ("torch", "onnxruntime")
+    packages = ("torch", "onnxruntime", "av")      # av: its libx264 writes path.mp4
 
     def run(self, ctx: StageContext) -> None:
         import torch

@@ -2,7 +2,10 @@
 
 `build_report(rows, out_dir, title_info=...)` reads finished evaluate results (their `metrics.json`,
 `views/`, `path.mp4`) and edit results (`curves.json`) and writes, into `out_dir`:
-    table.md, table.csv, table.json    one row per variant (mean ± std over seeds), best value marked
+    table.md, table.csv, table.json    one row per variant (mean ± std over seeds, n), best value marked,
+                                       paired difference to a reference row with a bootstrap CI
+    scenes/<scene>_<edit>/table.*      the same per scene and edit (only when there are several)
+    params/<axis>.png                  each metric against a parameter axis, error bars = std over seeds
     grid.png                           rows: original, ground-truth edit (procedural scenes), variants
     path_strip.png                     camera-path frames at evenly spaced positions, per variant
     curves/<series>.png                training curves of every edited row, one plot per series
@@ -18,12 +21,14 @@ import json
 import math
 import re
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from dualnerf.metrics import METRICS, METRICS_FORMAT, METRICS_VERSION, json_value, parse_json_value
+from stages import report_statistics as RS
+from stages.statistics import summarize_over_seeds
 
 GRID_VIEWS = 4
 PATH_STRIP_FRAMES = 6
@@ -58,7 +63,7 @@ class ReportRow:
 
     @property
     def variant_key(self) -> tuple:
-        return (self.label, self.dual_field, self.annealing, self.consistency)
+        return (self.label, self.dual_field, self.annealing, self.consistency, tuple(self.params))
 
 
 def load_metrics(evaluate_dir: Path) -> dict:
@@ -92,6 +97,9 @@ class TableRow:
     mean: dict[str, float]
     std: dict[str, float]
     best: dict[str, bool]
+    params: tuple = ()
+    runs: int = 0                               # results behind the row (scenes x edits x seeds)
+    n: dict[str, int] = field(default_factory=dict)    # per column: results with a value (not null)
 
 
 def _column_names(docs: list[dict]) -> list[str]:
@@ -112,8 +120,9 @@ def column_header(column: str, docs: list[dict]) -> str:
 
 
 def aggregate(rows: list[ReportRow], docs: list[dict]) -> tuple[list[str], list[TableRow]]:
-    """Group rows by variant (Original first, then grid order), mean ± sample std over seeds, and mark
-    the best mean per column in the direction the metric improves."""
+    """Group rows by variant (Original first, then grid order), mean ± sample std over seeds of each
+    seed's mean over scenes and edits (stages/statistics.py), and mark the best mean per column in the
+    direction the metric improves."""
     columns = _column_names(docs)
     for column in columns:
         tags = _encoder_tags(docs, column)
@@ -127,15 +136,14 @@ def aggregate(rows: list[ReportRow], docs: list[dict]) -> tuple[list[str], list[
     table = []
     for _, members in ordered:
         first = rows[members[0]]
-        mean, std = {}, {}
+        mean, std, n = {}, {}, {}
         for column in columns:
-            values = np.array([metric_value(docs[i]["metrics"].get(column)) for i in members])
-            values = values[~np.isnan(values)]
-            mean[column] = float(np.mean(values)) if values.size else math.nan
-            std[column] = float(np.std(values, ddof=1)) if values.size > 1 and np.all(np.isfinite(values)) \
-                else math.nan
+            summary = summarize_over_seeds([metric_value(docs[i]["metrics"].get(column)) for i in members],
+                                           [rows[i].seed for i in members])
+            mean[column], std[column], n[column] = summary.mean, summary.std, summary.n
         table.append(TableRow(first.label, (first.dual_field, first.annealing, first.consistency),
-                              [rows[i].seed for i in members], mean, std, {}))
+                              list(dict.fromkeys(rows[i].seed for i in members)), mean, std, {},
+                              params=tuple(first.params), runs=len(members), n=n))
     for column in columns:
         means = np.array([r.mean[column] for r in table])
         valid = ~np.isnan(means)
@@ -170,43 +178,64 @@ def _mark(flag: bool | None) -> str:
     return "" if flag is None else ("✓" if flag else "✗")
 
 
-def write_tables(columns: list[str], table: list[TableRow], docs: list[dict], out_dir: Path) -> dict:
+def write_tables(columns: list[str], table: list[TableRow], docs: list[dict], out_dir: Path,
+                 paired: dict | None = None, reference: str | None = None) -> dict:
+    """table.md/csv/json; `paired` ({(label, params): {column: PairedDifference}}, from
+    report_statistics.paired_differences) adds the difference-to-`reference` columns."""
+    paired = paired or {}
     headers = [column_header(c, docs) for c in columns]
-    lines = ["| Variant | DF | SA | CCI | seeds | " + " | ".join(headers) + " |",
-             "|---|:-:|:-:|:-:|---|" + "---:|" * len(columns)]
+    lines = ["| Variant | DF | SA | CCI | seeds | n | " + " | ".join(headers) + " |",
+             "|---|:-:|:-:|:-:|---|---:|" + "---:|" * len(columns)]
     for row in table:
-        label = "Original Scene" if row.toggles[0] is None else row.label
+        label = RS.display_label(row.label, row.params, original=row.toggles[0] is None)
         seeds = ", ".join("-" if s is None else str(s) for s in row.seeds)
         cells = [f"**{format_cell(row, c)}**" if row.best[c] else format_cell(row, c) for c in columns]
-        lines.append(f"| {label} | " + " | ".join(_mark(t) for t in row.toggles) + f" | {seeds} | "
+        lines.append(f"| {label} | " + " | ".join(_mark(t) for t in row.toggles) + f" | {seeds} | {row.runs} | "
                      + " | ".join(cells) + " |")
     lines.append("")
-    lines.append("Best value per column in bold (↑ higher is better, ↓ lower). Bracketed tags name the "
+    lines.append("Mean ± sample std over seeds (of each seed's mean over scenes and edits); n: results per "
+                 "row. Best value per column in bold (↑ higher is better, ↓ lower). Bracketed tags name the "
                  "encoder behind CLIP-space numbers; `proxy` is a weight-free stand-in, NOT CLIP.")
+    if paired:
+        lines += RS.markdown_section(table, columns, headers, paired, reference)
     (out_dir / "table.md").write_text("\n".join(lines) + "\n")
 
     with open(out_dir / "table.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
-        head = ["variant", "dual_field", "annealing", "consistency", "seeds"]
+        head = ["variant", "dual_field", "annealing", "consistency", "seeds", "params", "runs"]
         for column in columns:
-            head += [f"{column}_mean", f"{column}_std", f"{column}_best"]
+            head += [f"{column}_mean", f"{column}_std", f"{column}_n", f"{column}_best"]
+            if paired:
+                head += [f"{column}_diff", f"{column}_ci_low", f"{column}_ci_high", f"{column}_ci_contains_zero"]
         writer.writerow(head)
         for row in table:
             record = [row.label, *("" if t is None else int(t) for t in row.toggles),
-                      " ".join("" if s is None else str(s) for s in row.seeds)]
+                      " ".join("" if s is None else str(s) for s in row.seeds),
+                      " ".join(f"{k}={v}" for k, v in row.params), row.runs]
             for column in columns:
-                record += [_csv_number(row.mean[column]), _csv_number(row.std[column]), int(row.best[column])]
+                record += [_csv_number(row.mean[column]), _csv_number(row.std[column]), row.n[column],
+                           int(row.best[column])]
+                if paired:
+                    diff = paired.get(RS.row_key(row), {}).get(column)
+                    record += ["", "", "", ""] if diff is None else [
+                        _csv_number(diff.mean), _csv_number(diff.low), _csv_number(diff.high),
+                        "" if diff.contains_zero is None else int(diff.contains_zero)]
             writer.writerow(record)
 
     doc = {
         "columns": [{"name": c, "symbol": METRICS[c].symbol, "higher_is_better": METRICS[c].higher_is_better,
                      "encoder": _encoder_tags(docs, c) if METRICS[c].uses_encoder else None} for c in columns],
         "rows": [{"label": r.label, "dual_field": r.toggles[0], "annealing": r.toggles[1],
-                  "consistency": r.toggles[2], "seeds": r.seeds,
+                  "consistency": r.toggles[2], "seeds": r.seeds, "params": [list(p) for p in r.params],
+                  "runs": r.runs,
                   "metrics": {c: {"mean": json_value(r.mean[c]), "std": json_value(r.std[c]),
-                                  "n": len(r.seeds), "best": r.best[c]} for c in columns}}
+                                  "n": r.n[c], "best": r.best[c],
+                                  **({"paired": RS.diff_json(paired[RS.row_key(r)][c])}
+                                     if c in paired.get(RS.row_key(r), {}) else {})} for c in columns}}
                  for r in table],
     }
+    if paired:
+        doc["paired"] = RS.bootstrap_record(reference)
     (out_dir / "table.json").write_text(json.dumps(doc, indent=1))
     return doc
 
@@ -278,14 +307,15 @@ def write_image_grid(rows: list[ReportRow], docs: list[dict], path: Path) -> lis
     if any(image is not None for image in gt):
         grid.append(("GT edit", gt))
     for row in _first_per_variant(rows):
-        grid.append((row.label, [_read_rgb(row.evaluate_dir / "views" / "edited" / n) for n in names]))
+        grid.append((RS.display_label(row.label, row.params),
+                     [_read_rgb(row.evaluate_dir / "views" / "edited" / n) for n in names]))
     _plot_grid(grid, names, path)
     return [label for label, _ in grid]
 
 
 def write_path_strip(rows: list[ReportRow], path: Path) -> list[str] | None:
     """Camera-path frames at evenly spaced positions (columns) for the original scene and the first seed
-    of every variant: the video's content as a still (mp4v does not play in every browser)."""
+    of every variant: the videos' content as a still, for print and for a quick look."""
     source = rows[0].evaluate_dir / "frames" / "original"
     count = len(list(source.glob("*.png"))) if source.is_dir() else 0
     if count == 0:
@@ -294,7 +324,8 @@ def write_path_strip(rows: list[ReportRow], path: Path) -> list[str] | None:
     names = [f"{i:04d}.png" for i in picks]
     grid = [("Original", [_read_rgb(source / n) for n in names])]
     for row in _first_per_variant(rows):
-        grid.append((row.label, [_read_rgb(row.evaluate_dir / "frames" / "edited" / n) for n in names]))
+        grid.append((RS.display_label(row.label, row.params),
+                     [_read_rgb(row.evaluate_dir / "frames" / "edited" / n) for n in names]))
     _plot_grid(grid, [f"frame {i}" for i in picks], path)
     return [label for label, _ in grid]
 
@@ -401,35 +432,46 @@ def _title_rows(docs: list[dict], title_info: dict) -> list[tuple[str, str]]:
     return rows + [("editor", editor_text), ("encoder", encoder_text)]
 
 
+def metrics_table_html(columns, table, docs) -> list[str]:
+    esc = html.escape
+    parts = ["<table><tr><th>Variant</th><th>DF</th><th>SA</th><th>CCI</th><th>seeds</th><th>n</th>"]
+    parts += [f"<th>{esc(column_header(c, docs))}</th>" for c in columns]
+    parts.append("</tr>")
+    for row in table:
+        label = RS.display_label(row.label, row.params, original=row.toggles[0] is None)
+        seeds = ", ".join("-" if s is None else str(s) for s in row.seeds)
+        parts.append(f"<tr><td style='text-align:left'>{esc(label)}</td>"
+                     + "".join(f"<td style='text-align:center'>{_mark(t)}</td>" for t in row.toggles)
+                     + f"<td>{esc(seeds)}</td><td>{row.runs}</td>")
+        for c in columns:
+            cls = " class='best'" if row.best[c] else ""
+            parts.append(f"<td{cls}>{esc(format_cell(row, c))}</td>")
+        parts.append("</tr>")
+    parts.append("</table>")
+    return parts
+
+
 def write_html(out_dir: Path, *, title_rows, columns, table, docs, grid_labels, strip_labels, curves,
-               videos) -> Path:
+               videos, sections=()) -> Path:
+    """index.html; `sections` are ready HTML fragments (statistics) placed after the metrics table."""
     esc = html.escape
     parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'><title>DualNeRF report</title>",
              ("<style>body{font-family:sans-serif;margin:2em;max-width:1200px}table{border-collapse:collapse}"
              "td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}th{background:#eee}"
-             ".best{font-weight:bold;background:#e6f4e6}.warn{color:#a00;font-weight:bold}"
+             ".best{font-weight:bold;background:#e6f4e6}.warn{color:#a00;font-weight:bold}.ns{color:#777}.paired td{white-space:nowrap}"
              "img{max-width:100%}</style></head><body>"), "<h1>DualNeRF experiment report</h1>",
              "<table class='title'>"]
     for key, value in title_rows:
         cls = " class='warn'" if ("EMULATOR" in value or "NOT CLIP" in value) else ""
         parts.append(f"<tr><th>{esc(key)}</th><td{cls} style='text-align:left'>{esc(value)}</td></tr>")
     parts.append("</table>")
-    parts.append("<h2>Metrics</h2><table><tr><th>Variant</th><th>DF</th><th>SA</th><th>CCI</th><th>seeds</th>")
-    parts += [f"<th>{esc(column_header(c, docs))}</th>" for c in columns]
-    parts.append("</tr>")
-    for row in table:
-        label = "Original Scene" if row.toggles[0] is None else row.label
-        seeds = ", ".join("-" if s is None else str(s) for s in row.seeds)
-        parts.append(f"<tr><td style='text-align:left'>{esc(label)}</td>"
-                     + "".join(f"<td style='text-align:center'>{_mark(t)}</td>" for t in row.toggles)
-                     + f"<td>{esc(seeds)}</td>")
-        for c in columns:
-            cls = " class='best'" if row.best[c] else ""
-            parts.append(f"<td{cls}>{esc(format_cell(row, c))}</td>")
-        parts.append("</tr>")
-    parts.append("</table><p>Best value per column highlighted. Downloads: <a href='table.md'>table.md</a>, "
+    parts.append("<h2>Metrics</h2>")
+    parts += metrics_table_html(columns, table, docs)
+    parts.append("<p>Mean ± sample std over seeds; n: results per row. Best value per column highlighted. "
+                 "Downloads: <a href='table.md'>table.md</a>, "
                  "<a href='table.csv'>table.csv</a>, <a href='table.json'>table.json</a>. Metric "
                  "definitions: docs/metrics.md in the repository.</p>")
+    parts += list(sections)
     if grid_labels:
         parts.append(f"<h2>Views</h2><p>Rows: {esc(', '.join(grid_labels))}.</p>"
                      "<img src='grid.png' alt='image grid'>")
@@ -451,8 +493,69 @@ def write_html(out_dir: Path, *, title_rows, columns, table, docs, grid_labels, 
     return path
 
 
-def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict) -> Path:
-    """Write the report for `rows` (Original row first if present) into `out_dir`; returns index.html."""
+def _paired(rows, docs, table, columns, reference: str | None) -> tuple[dict, str]:
+    """Paired differences to the reference label; {} when the default reference is absent."""
+    label = reference or RS.DEFAULT_REFERENCE
+    if label not in {r.label for r in table}:
+        if reference is None:
+            return {}, label
+        raise ReportError(f"reference row {reference!r} is not among the report's rows "
+                          f"({', '.join(sorted({r.label for r in table}))}); pass one of those labels.")
+    try:
+        return RS.paired_differences(rows, docs, table, columns, label, metric_value), label
+    except ValueError as err:
+        raise ReportError(f"report: {err}") from None
+
+
+def _per_scene_tables(rows, docs, reference: str | None, out_dir: Path) -> list[tuple]:
+    """With several (scene, edit) pairs: each one's table (and differences) in scenes/<scene>_<edit>/."""
+    pairs = RS.scene_edits(rows)
+    if len(pairs) < 2:
+        return []
+    written = []
+    for scene, edit in pairs:
+        members = [i for i, r in enumerate(rows) if (r.scene, r.edit) == (scene, edit)]
+        sub_rows, sub_docs = [rows[i] for i in members], [docs[i] for i in members]
+        columns, table = aggregate(sub_rows, sub_docs)
+        if reference is not None and reference not in {r.label for r in table}:
+            paired, label = {}, reference                   # this scene did not run the reference
+        else:
+            paired, label = _paired(sub_rows, sub_docs, table, columns, reference)
+        rel = f"scenes/{_slug(f'{scene}_{edit}')}"
+        (out_dir / rel).mkdir(parents=True, exist_ok=True)
+        doc = write_tables(columns, table, sub_docs, out_dir / rel, paired, label)
+        written.append((scene, edit, rel, columns, table, sub_docs, paired, label, doc))
+    return written
+
+
+def _statistics_html(columns, table, docs, paired, reference, per_scene, param_plots) -> list[str]:
+    esc = html.escape
+    parts = []
+    if paired:
+        headers = [column_header(c, docs) for c in columns]
+        parts.append(RS.html_section(table, columns, headers, paired, reference))
+    if param_plots:
+        parts.append("<h2>Parameter axes</h2><p>Each metric against the parameter: mean ± std over seeds "
+                     "(error bars), averaged over scenes and edits.</p>")
+        parts += [f"<img src='{esc(rel)}' alt='{esc(rel)}'>" for rel in param_plots]
+    if per_scene:
+        parts.append("<h2>Per scene and edit</h2>")
+        for scene, edit, rel, sub_columns, sub_table, sub_docs, sub_paired, label, _ in per_scene:
+            parts.append(f"<h3>{esc(scene)} / {esc(edit)}</h3>")
+            parts += metrics_table_html(sub_columns, sub_table, sub_docs)
+            if sub_paired:
+                headers = [column_header(c, sub_docs) for c in sub_columns]
+                parts.append(RS.html_section(sub_table, sub_columns, headers, sub_paired, label)
+                             .replace("<h2>", "<h4>").replace("</h2>", "</h4>"))
+            parts.append(f"<p>Downloads: <a href='{esc(rel)}/table.md'>table.md</a>, "
+                         f"<a href='{esc(rel)}/table.csv'>table.csv</a>, "
+                         f"<a href='{esc(rel)}/table.json'>table.json</a>.</p>")
+    return parts
+
+
+def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict, reference: str | None = None) -> Path:
+    """Write the report for `rows` (Original row first if present) into `out_dir`; returns index.html.
+    `reference`: the row label that differences are taken to (default "baseline" where present)."""
     if not rows:
         raise ReportError("nothing to report: no evaluate results were given; run the workflow first.")
     out_dir = Path(out_dir)
@@ -460,15 +563,22 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict) -> P
     rows = sorted(rows, key=lambda r: not r.is_original)          # stable: grid order kept
     docs = [load_metrics(row.evaluate_dir) for row in rows]
     columns, table = aggregate(rows, docs)
-    table_doc = write_tables(columns, table, docs, out_dir)
-    grid_labels = write_image_grid(rows, docs, out_dir / "grid.png")
-    strip_labels = write_path_strip(rows, out_dir / "path_strip.png")
+    paired, reference_label = _paired(rows, docs, table, columns, reference)
+    table_doc = write_tables(columns, table, docs, out_dir, paired, reference_label)
+    per_scene = _per_scene_tables(rows, docs, reference, out_dir)
+    param_plots = RS.write_parameter_plots(table, columns, out_dir, reference_label)
+    scene_edits = RS.scene_edits(rows)
+    shown = [i for i, r in enumerate(rows) if (r.scene, r.edit) == scene_edits[0]]   # images: one scene
+    grid_labels = write_image_grid([rows[i] for i in shown], [docs[i] for i in shown], out_dir / "grid.png")
+    strip_labels = write_path_strip([rows[i] for i in shown], out_dir / "path_strip.png")
     curves = write_curves(rows, out_dir)
     videos = []
     for row in rows:
         source = row.evaluate_dir / "path.mp4"
         if source.exists():
-            name = row.label if row.seed is None else f"{row.label}_seed{row.seed}"
+            name = RS.display_label(row.label, row.params)
+            name += f" {row.scene}/{row.edit}" if len(scene_edits) > 1 else ""
+            name += "" if row.seed is None else f" seed {row.seed}"
             rel = f"videos/{_slug(name)}.mp4"
             (out_dir / "videos").mkdir(exist_ok=True)
             shutil.copyfile(source, out_dir / rel)
@@ -476,9 +586,14 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict) -> P
     title_rows = _title_rows(docs, title_info)
     (out_dir / "report.json").write_text(json.dumps({
         "title": dict(title_rows), "table": table_doc, "grid_rows": grid_labels,
+        "per_scene": [{"scene": sc, "edit": ed, "folder": rel, "table": doc}
+                      for sc, ed, rel, *_, doc in per_scene], "parameter_plots": param_plots,
         "path_strip_rows": strip_labels, "curves": curves,
         "videos": [rel for _, rel in videos],
-        "rows": [{"label": r.label, "seed": r.seed, "evaluate_dir": str(r.evaluate_dir),
+        "rows": [{"label": r.label, "seed": r.seed, "scene": r.scene, "edit": r.edit,
+                  "params": [list(p) for p in r.params], "evaluate_dir": str(r.evaluate_dir),
                   "edit_dir": None if r.edit_dir is None else str(r.edit_dir)} for r in rows]}, indent=1))
     return write_html(out_dir, title_rows=title_rows, columns=columns, table=table, docs=docs,
-                      grid_labels=grid_labels, strip_labels=strip_labels, curves=curves, videos=videos)
+                      grid_labels=grid_labels, strip_labels=strip_labels, curves=curves, videos=videos,
+                      sections=_statistics_html(columns, table, docs, paired, reference_label, per_scene,
+                                                param_plots))

@@ -70,6 +70,10 @@ def test_original_scene_invariants(tmp_path, tiny_dataset, models):
     for kind in ("original", "edited", "gt_edit", "gt_mask"):
         assert sorted(p.name for p in (out / "views" / kind).iterdir()) == sorted(names)
     assert (out / "path.mp4").stat().st_size > 0
+    from dualnerf.video import probe_video
+
+    video = probe_video(out / "path.mp4")                       # browser-playable H.264, one frame per pose
+    assert (video["codec"], video["pix_fmt"], video["frames"], video["faststart"]) == ("h264", "yuv420p", 5, True)
     path = json.loads((out / "camera_path.json").read_text())
     assert len(path["c2w"]) == 5 and not path["closed"]          # the tiny scene is an arc capture
     # path_scale 0.5: frames at half the dataset size, focal lengths and centre halved with them.

@@ -20,6 +20,9 @@ def register(subparsers) -> None:
                         help="report folder (default: the workflow's report_dir, e.g. reports/<scene>)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="the same overrides as `dualnerf run` (repeatable)")
+    parser.add_argument("--reference", default=None, metavar="LABEL",
+                        help="row that every other row's paired difference (with bootstrap CI) is taken "
+                             "to (default: the row labelled 'baseline', Instruct-NeRF2NeRF)")
     parser.set_defaults(handler=_report)
 
 
@@ -28,7 +31,7 @@ def _report(args: argparse.Namespace) -> int:
     from stages.workflow import load_workflow
 
     workflow = load_workflow(args.workflow, args.overrides)
-    index = report_workflow(workflow, open_store(args), args.out)
+    index = report_workflow(workflow, open_store(args), args.out, reference=args.reference)
     print(f"report: {index}")
     return 0
 
@@ -59,7 +62,7 @@ def workflow_rows(workflow, store) -> list:
     return rows
 
 
-def report_workflow(workflow, store, out_dir: Path | None = None) -> Path:
+def report_workflow(workflow, store, out_dir: Path | None = None, *, reference: str | None = None) -> Path:
     """Build the report of `workflow` from `store` into `out_dir` (default workflow.report_dir)."""
     from stages.report import build_report
 
@@ -71,4 +74,4 @@ def report_workflow(workflow, store, out_dir: Path | None = None) -> Path:
         title_info = {"workflow": title_info["workflow"], "scenes": ", ".join(workflow.scenes),
                       "scene edits": ", ".join(sorted({f"{c.scene}/{c.edit_id}" for c in workflow.cells}))}
     return build_report(workflow_rows(workflow, store), Path(out_dir or workflow.report_dir),
-                        title_info=title_info)
+                        title_info=title_info, reference=reference)
