@@ -219,17 +219,23 @@ class LPIPS(nn.Module):
             conv_index += 1
         return taps
 
-    def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, y: torch.Tensor, spatial: bool = False) -> torch.Tensor:
+        """(B,) distances; with spatial=True the (B,H,W) distance map instead: each layer's map upsampled
+        bilinearly to the input size (as the LPIPS release's spatial mode does), summed over layers."""
         if x.shape != y.shape or x.ndim != 4 or x.shape[1] != 3:
             raise ValueError(f"LPIPS compares two (B,3,H,W) batches of equal shape, got {tuple(x.shape)} and "
                              f"{tuple(y.shape)}")
         # One pass over both batches: one set of larger convolutions is faster than two.
         feats = self.features(torch.cat([x, y]))
-        total = x.new_zeros(x.shape[0])
+        total = x.new_zeros((x.shape[0], *x.shape[2:]) if spatial else x.shape[0])
         for tap, weight in zip(feats, self.linear):
             tap = tap / (tap.pow(2).sum(dim=1, keepdim=True).sqrt() + _NORM_EPS)
             a, b = tap.split(x.shape[0])
-            total = total + ((a - b) ** 2 * weight).sum(dim=1).mean(dim=(1, 2))
+            layer = ((a - b) ** 2 * weight).sum(dim=1, keepdim=spatial)
+            if spatial:
+                total = total + F.interpolate(layer, size=x.shape[2:], mode="bilinear", align_corners=False)[:, 0]
+            else:
+                total = total + layer.mean(dim=(1, 2))
         return total
 
 

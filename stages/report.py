@@ -96,8 +96,8 @@ def _column_names(docs: list[dict]) -> list[str]:
     return [name for name in METRICS if name in present]
 
 
-def _encoder_tags(docs: list[dict], column: str) -> str:
-    tags = sorted({doc["metrics"][column].get("encoder", "?") for doc in docs if column in doc["metrics"]})
+def _encoder_tags(docs: list[dict], column: str, key: str = "encoder") -> str:
+    tags = sorted({doc["metrics"][column].get(key, "?") for doc in docs if column in doc["metrics"]})
     return ", ".join(tags)
 
 
@@ -105,6 +105,7 @@ def column_header(column: str, docs: list[dict]) -> str:
     info = METRICS[column]
     arrow = "↑" if info.higher_is_better else "↓"
     tag = f" [{_encoder_tags(docs, column)}]" if info.uses_encoder else ""
+    tag = f" [{_encoder_tags(docs, column, 'lpips')}]" if info.uses_lpips else tag
     return f"{info.symbol} {arrow}{tag}"
 
 
@@ -117,6 +118,9 @@ def aggregate(rows: list[ReportRow], docs: list[dict]) -> tuple[list[str], list[
         if METRICS[column].uses_encoder and "," in tags:
             raise ReportError(f"the results mix encoders for {METRICS[column].symbol} ({tags}); numbers from "
                               f"different encoders cannot share a column. Evaluate every row with one encoder.")
+        if METRICS[column].uses_lpips and "," in _encoder_tags(docs, column, "lpips"):
+            raise ReportError(f"the results mix LPIPS backbones for {METRICS[column].symbol}; evaluate every "
+                              f"row with one evaluate.lpips_net.")
     groups: dict[tuple, list[int]] = {}
     for i, row in enumerate(rows):
         groups.setdefault(row.variant_key, []).append(i)
@@ -395,7 +399,9 @@ def _title_rows(docs: list[dict], title_info: dict) -> list[tuple[str, str]]:
     encoder_text = ", ".join(f"{e} (weight-free stand-in, NOT CLIP)" if e in SIMULATED_ENCODERS else e
                              for e in encoders)
     rows = [(str(k), str(v)) for k, v in title_info.items()]
-    return rows + [("editor", editor_text), ("encoder", encoder_text)]
+    lpips = sorted({(doc.get("lpips") or {}).get("tag") for doc in docs} - {None})
+    return rows + [("editor", editor_text), ("encoder", encoder_text)] + \
+        ([("LPIPS metrics", ", ".join(lpips) + " (pretrained, v0.1 linear layers)")] if lpips else [])
 
 
 def write_html(out_dir: Path, *, title_rows, columns, table, docs, grid_labels, strip_labels, curves,

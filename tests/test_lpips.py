@@ -99,3 +99,28 @@ def test_missing_weight_package_names_it(monkeypatch, module, requirement):
 def test_unknown_backbone_is_a_clear_error():
     with pytest.raises(ValueError, match="alex, vgg"):
         lpips.load_lpips("squeeze")
+
+
+def test_spatial_map_and_masked_distance():
+    from dualnerf.lpips_metrics import masked_lpips
+
+    model = lpips.load_lpips("alex")
+    ref, p0 = _image("ex_ref"), _image("ex_p0")
+    x, y = lpips.to_lpips_input(ref), lpips.to_lpips_input(p0)
+    with torch.no_grad():
+        distance_map = model(x, y, spatial=True)
+        scalar = float(model(x, y)[0])
+    assert distance_map.shape == (1, 64, 64) and float(distance_map.min()) >= 0.0
+    # Bilinear upsampling keeps each layer's mean up to border effects: the map's mean is the distance.
+    assert float(distance_map.mean()) == pytest.approx(scalar, rel=0.05)
+    everywhere = np.ones((64, 64), bool)
+    assert masked_lpips(model, ref, p0, everywhere) == pytest.approx(float(distance_map.mean()), rel=1e-6)
+    # Differences confined to the left half are invisible to the right half's distance ...
+    left_changed = ref.copy()
+    left_changed[:, :32] = p0[:, :32]
+    right = np.zeros((64, 64), bool)
+    right[:, 32:] = True
+    assert masked_lpips(model, ref, left_changed, right) == 0.0
+    assert masked_lpips(model, ref, left_changed, ~right) > 0.1
+    # ... and an empty region has no distance.
+    assert np.isnan(masked_lpips(model, ref, p0, np.zeros((64, 64), bool)))
