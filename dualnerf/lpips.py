@@ -277,7 +277,7 @@ def _on_device(net: str, device: str) -> LPIPS:
 
 def to_lpips_input(image) -> torch.Tensor:
     """(H,W,3) uint8 or float [0,1] image (numpy or tensor) -> (1,3,H,W) float32 in [-1, 1]."""
-    array = torch.as_tensor(np.asarray(image))
+    array = image if torch.is_tensor(image) else torch.from_numpy(np.ascontiguousarray(image))
     if array.ndim != 3 or array.shape[-1] != 3:
         raise ValueError(f"LPIPS takes (H, W, 3) RGB images, got shape {tuple(array.shape)}")
     unit = array.float() / 255.0 if array.dtype == torch.uint8 else array.float()
