@@ -25,6 +25,11 @@ loaded cores): 0.5-0.7 s per training iteration and 2-4 s per view update (rende
 encoder), i.e. 3-5 min per variant; both costs scale with pixels x samples per ray, so the ablation
 should preprocess at ~128 px and fit with <= 96 samples per ray. The blend schedule keeps the paper's
 lambda = 0.005, so the blend weights reach tanh(1) = 0.76 w_max by iteration 200.
+
+Loss: RGB + lpips_weight x LPIPS (AlexNet, v0.1) on 32x32 rendered patches, as the paper (Sec. 4.4) and
+Instruct-NeRF2NeRF; at the CPU preset's 1024 rays the one patch is the whole batch, at the paper's 4096
+half of it (2 patches). LPIPS on one 32x32 patch (forward + backward) is small next to rendering the
+batch; benchmarks/bench_lpips prints the step-time ratio. lpips_weight = 0 restores the RGB-only loss.
 """
 from __future__ import annotations
 
