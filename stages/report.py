@@ -201,7 +201,8 @@ def write_tables(columns: list[str], table: list[TableRow], docs: list[dict], ou
 
     doc = {
         "columns": [{"name": c, "symbol": METRICS[c].symbol, "higher_is_better": METRICS[c].higher_is_better,
-                     "encoder": _encoder_tags(docs, c) if METRICS[c].uses_encoder else None} for c in columns],
+                     "encoder": _encoder_tags(docs, c) if METRICS[c].uses_encoder else None,
+                     "lpips": _encoder_tags(docs, c, "lpips") if METRICS[c].uses_lpips else None} for c in columns],
         "rows": [{"label": r.label, "dual_field": r.toggles[0], "annealing": r.toggles[1],
                   "consistency": r.toggles[2], "seeds": r.seeds,
                   "metrics": {c: {"mean": json_value(r.mean[c]), "std": json_value(r.std[c]),
