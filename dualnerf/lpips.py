@@ -52,6 +52,9 @@ _ALEX_CONVS = ((64, 11, 4, 2), (192, 5, 1, 2), (384, 3, 1, 1), (256, 3, 1, 1), (
 # VGG16 conv1_1..conv5_3 (3x3, padding 1); "M" = 2x2/2 max pool. Taps: the last ReLU of each block.
 _VGG_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512)
 _VGG_TAPS = (1, 3, 6, 9, 12)        # conv indices (0-based) whose ReLU outputs are tapped
+# The smallest image side each backbone takes: AlexNet's 11x11/4 convolution and two 3x3/2 max pools need
+# 31 pixels, VGG16's four 2x2 pools 16.
+MIN_SIZE = {"alex": 31, "vgg": 16}
 
 
 class LPIPSWeightsMissing(RuntimeError):

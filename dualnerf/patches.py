@@ -35,13 +35,10 @@ def patch_count(rays_per_batch: int, patch_size: int, patch_share: float) -> int
     return max(1, round(patch_share * rays_per_batch / per_patch))
 
 
-# The smallest patch each LPIPS backbone can take: AlexNet's 11x11/4 convolution and two 3x3/2 max pools
-# need 31 pixels, VGG16's four 2x2 pools 16.
-MIN_PATCH_SIZE = {"alex": 31, "vgg": 16}
-
-
 def check_patch_size(patch_size: int, net: str) -> None:
-    smallest = MIN_PATCH_SIZE.get(net, 1)
+    from dualnerf.lpips import MIN_SIZE
+
+    smallest = MIN_SIZE.get(net, 1)
     if patch_size < smallest:
         raise PatchConfigError(f"patch_size {patch_size} is too small for the LPIPS backbone '{net}' (it needs "
                                f">= {smallest} pixels); raise patch_size or use lpips_net 'vgg' (>= 16).")

@@ -124,3 +124,14 @@ def test_spatial_map_and_masked_distance():
     assert masked_lpips(model, ref, left_changed, ~right) > 0.1
     # ... and an empty region has no distance.
     assert np.isnan(masked_lpips(model, ref, p0, np.zeros((64, 64), bool)))
+
+
+def test_metrics_enlarge_images_below_the_backbone_minimum():
+    from dualnerf.lpips_metrics import lpips_metrics, masked_lpips
+
+    small_ref, small_p0 = _image("ex_ref")[::3, ::3], _image("ex_p0")[::3, ::3]      # 22x22 < 31
+    values, model = lpips_metrics("alex", [small_ref], [small_p0], [small_ref], [small_p0])
+    # Equal to LPIPS of the images enlarged 2x by pixel repetition (the smallest factor reaching 31 px).
+    big = [np.repeat(np.repeat(x, 2, 0), 2, 1) for x in (small_ref, small_p0)]
+    assert values["lpips_edited_vs_original"] == pytest.approx(lpips.lpips_distance(*big), rel=1e-6)
+    assert np.isfinite(masked_lpips(model, small_ref, small_p0, np.ones((22, 22), bool)))
