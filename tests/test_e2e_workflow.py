@@ -38,7 +38,7 @@ FAST = ["preprocess.max_size=64",
         "fit.grid_max_resolution=32", "fit.plane_levels=1", "fit.plane_max_resolution=64", "fit.checkpoint_every=5",
         "fit.eval_every=20", "fit.curve_views=1", "fit.render_samples_per_ray=32",
         "edit.iterations=20", "edit.rays_per_batch=256", "edit.edit_rate=5", "edit.edit_count=1",
-        "edit.checkpoint_every_rounds=1",
+        "edit.checkpoint_every_rounds=1", "edit.lpips_net=vgg", "edit.patch_size=16",
         "evaluate.n_frames=4", "evaluate.path_scale=0.5"]
 SCENE, PREPROCESS, FIT = "scene[tiny]", "preprocess[tiny]", "fit[tiny]"
 ORIGINAL = "evaluate[tiny, original]"

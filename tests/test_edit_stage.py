@@ -17,7 +17,8 @@ import torch
 from tests.test_edit_idu import SNOW, build_small_edit_inputs
 
 FAST = {"edit_id": SNOW, "iterations": 20, "edit_rate": 5, "edit_count": 2, "rays_per_batch": 256, "seed": 3,
-            "checkpoint_every_rounds": 1, "num_threads": 1}
+            "checkpoint_every_rounds": 1, "num_threads": 1, "lpips_net": "vgg", "patch_size": 16}
+# (the 40x30 test images take VGG16's 16x16 LPIPS patches; AlexNet's need 31 px)
 
 
 def run_stage(data_dir, fit_dir, root, **params):
@@ -68,6 +69,9 @@ def test_stage_outputs_records_and_untouched_inputs(small, tmp_path):
     assert model.render_blend == pytest.approx((0.1 * np.tanh(0.005 * 19),) * 2)
     summary = json.loads((out / "edit.json").read_text())
     assert summary["editor_is_simulator"] and summary["encoder"]["kind"] == "proxy"
+    # The LPIPS loss is on by default; edit.json and the manifest say with which setting.
+    assert summary["lpips"]["weight"] == 1.0 and summary["lpips"]["tag"] == "lpips-v0.1:vgg"
+    assert summary["lpips"]["patches_per_batch"] == 1 and ctx.records["lpips"] == summary["lpips"]
     # an updated view's stored image is the editor's output, not the original
     import cv2
 
@@ -83,6 +87,8 @@ def test_stage_outputs_records_and_untouched_inputs(small, tmp_path):
     ({"edit_id": "", "instruction": "Make it look like it just snowed"}, "needs edit_id"),
     ({"encoder": "clip", "encoder_model": ""}, "needs a model folder"),
     ({"instruction": "make it pink"}, "can only emulate edit 'snow'"),
+    ({"lpips_net": "squeeze"}, "lpips_net must be 'alex' or 'vgg'"),
+    ({"patch_size": 32}, "more than rays_per_batch"),
     ({"device": "cuda:0"}, "no CUDA device") if not torch.cuda.is_available() else ({}, None),
 ])
 def test_bad_parameters_are_clear_errors(small, tmp_path, params, message):

@@ -62,6 +62,11 @@ def test_original_scene_invariants(tmp_path, tiny_dataset, models):
         assert ("encoder" in entry) == M.METRICS[name].uses_encoder
         if M.METRICS[name].uses_encoder:
             assert entry["encoder"] == "proxy"
+        assert entry.get("lpips") == ("lpips-v0.1:alex" if M.METRICS[name].uses_lpips else None), name
+    # LPIPS: the unedited scene changed nothing, anywhere; the GT edit differs from f_S.
+    assert values["lpips_edited_vs_original"] == 0.0 and values["lpips_background"] == 0.0
+    assert values["gt_lpips_edit"] > 0.0
+    assert doc["lpips"]["net"] == "alex" and doc["lpips"]["tag"] == "lpips-v0.1:alex"
     # Files: 5 path frames per model, held-out views with ground truth, a decodable video.
     assert len(list((out / "frames" / "original").glob("*.png"))) == 5
     assert len(list((out / "frames" / "edited").glob("*.png"))) == 5
@@ -123,6 +128,21 @@ def test_edited_scene_metrics_match_independent_recomputation(tmp_path, tiny_dat
     expected = M.ground_truth_metrics(renders, [g[0] for g in gt], [g[1] for g in gt], originals)
     for name, value in expected.items():
         assert values[name] == pytest.approx(value), name
+    # LPIPS recomputed from the saved 8-bit frames and views (AlexNet, the default backbone).
+    from dualnerf.lpips import lpips_distance
+    from dualnerf.lpips_metrics import masked_lpips
+
+    assert values["lpips_edited_vs_original"] == pytest.approx(
+        np.mean([lpips_distance(a, b) for a, b in zip(original, edited)]), rel=1e-5)
+    assert values["lpips_edited_vs_original"] > 0.0
+    assert values["gt_lpips_edit"] == pytest.approx(
+        np.mean([lpips_distance(r, g[0]) for r, g in zip(renders, gt)]), rel=1e-5)
+    views_original = [read(out / "views" / "original" / n) for n in names]
+    from dualnerf.lpips import load_lpips
+
+    background = [masked_lpips(load_lpips("alex"), o, r, ~g[1].astype(bool))
+                  for o, r, g in zip(views_original, renders, gt)]
+    assert values["lpips_background"] == pytest.approx(np.nanmean(background), rel=1e-5)
     # CLIP-space metrics from the proxy encoder on the saved frames, captions defined by the scene.
     for name in ("clip_direction_consistency", "clip_edit_direction_consistency", "clip_frame_consistency",
                  "clip_text_image_direction"):

@@ -124,6 +124,7 @@ def test_fit_stage_learns_the_tiny_scene(tiny_dataset, tmp_path):
     assert [c["step"] for c in curve] == [100, 200, 300]
     assert (out / "curve.png").stat().st_size > 1000
     assert ctx.records["seed"] == 0 and "off" in ctx.records["lpips"]
+    assert metrics["lpips_loss"] == "off (RGB loss only)"             # the fit default: RGB loss only
     # Empty-space skipping is active: the occupancy grid has pruned part of the cube.
     assert metrics["occupancy_fraction"] < 0.9
 

@@ -25,7 +25,8 @@ def _png(path: Path, colour) -> None:
     assert cv2.imwrite(str(path), image[..., ::-1])
 
 
-def make_evaluate(folder: Path, values: dict, colour, *, encoder="proxy", editor="synthetic", gt=True):
+def make_evaluate(folder: Path, values: dict, colour, *, encoder="proxy", editor="synthetic", gt=True,
+                  lpips="lpips-v0.1:alex"):
     """A finished evaluate result folder as stages/evaluate.py writes it (metrics.json, views/, path.mp4)."""
     folder.mkdir(parents=True)
     doc = {"format": M.METRICS_FORMAT, "version": M.METRICS_VERSION,
@@ -33,8 +34,10 @@ def make_evaluate(folder: Path, values: dict, colour, *, encoder="proxy", editor
            "views": {"names": VIEWS, "split": "heldout"},
            "metrics": {name: {"value": M.json_value(v), "symbol": M.METRICS[name].symbol,
                               "higher_is_better": M.METRICS[name].higher_is_better,
-                              **({"encoder": encoder} if M.METRICS[name].uses_encoder else {})}
-                       for name, v in values.items()}}
+                              **({"encoder": encoder} if M.METRICS[name].uses_encoder else {}),
+                              **({"lpips": lpips} if M.METRICS[name].uses_lpips else {})}
+                       for name, v in values.items()},
+           "lpips": {"tag": lpips}}
     (folder / "metrics.json").write_text(json.dumps(doc))
     for name in VIEWS:
         _png(folder / "views" / "original" / name, (90, 140, 60))
@@ -182,3 +185,19 @@ def test_mixed_encoders_are_refused(tmp_path):
                         make_evaluate(tmp_path / "b", values, (1, 2, 3), encoder="clip:ViT-B/32@abc"))]
     with pytest.raises(R.ReportError, match="mix encoders"):
         R.build_report(rows, tmp_path / "r", title_info={})
+
+
+def test_lpips_columns_name_the_backbone_and_refuse_mixing(tmp_path):
+    values = {"ssim_edited_vs_original": 0.8, "lpips_edited_vs_original": 0.2, "gt_lpips_edit": 0.3}
+    rows = [R.ReportRow("original", None, None, None, None,
+                        make_evaluate(tmp_path / "o", {**values, "lpips_edited_vs_original": 0.0}, (1, 2, 3),
+                                      editor=None)),
+            R.ReportRow("a", True, True, True, 0, make_evaluate(tmp_path / "a", values, (1, 2, 3)))]
+    R.build_report(rows, tmp_path / "r", title_info={})
+    table = (tmp_path / "r" / "table.md").read_text()
+    assert "LPIPS ↓ [lpips-v0.1:alex]" in table and "LPIPS_gt ↓ [lpips-v0.1:alex]" in table
+    assert "lpips-v0.1:alex (pretrained" in (tmp_path / "r" / "index.html").read_text()
+    rows.append(R.ReportRow("b", False, False, False, 0,
+                            make_evaluate(tmp_path / "b", values, (1, 2, 3), lpips="lpips-v0.1:vgg")))
+    with pytest.raises(R.ReportError, match="mix LPIPS backbones"):
+        R.build_report(rows, tmp_path / "r2", title_info={})
