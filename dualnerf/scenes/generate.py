@@ -187,7 +187,8 @@ def _write_scene_toml(path: Path, config: SceneConfig, seed: int, edits) -> None
              f"camera_radius = {config.camera_radius}", ""]
     for e in edits:
         lines += ["[[edits]]", f"id = {q(e.id)}", f"instruction = {q(e.instruction)}",
-                  f"source_caption = {q(e.source_caption)}", f"target_caption = {q(e.target_caption)}", ""]
+                  f"source_caption = {q(e.source_caption)}", f"target_caption = {q(e.target_caption)}",
+                  f"kind = {q(e.kind)}", ""]
     path.write_text("\n".join(lines))
 
 

@@ -34,7 +34,6 @@ from dualnerf.scenes.geometry import (
 from dualnerf.scenes.materials import Material
 from dualnerf.scenes.render import SceneObject, Variant, World
 
-
 EDIT_KINDS = ("recolour", "global", "geometry")
 
 
@@ -209,7 +208,7 @@ PARTY_HAT_EDIT = EditDef(
 
 
 def bear_world(config: SceneConfig, seed: int) -> World:
-    hx, hy, hz = BEAR_HEAD
+    hx, _, hz = BEAR_HEAD
     objects = [
         SceneObject("pedestal", Cylinder(centre=(0.0, 0.0, 0.0), radius=0.95, height=PEDESTAL_TOP), STONE),
         SceneObject("body", Ellipsoid(centre=(0.0, 0.0, 0.78), radii=(0.58, 0.32, 0.30)), FUR),
