@@ -64,7 +64,7 @@ def edit_coverage(scene: Path) -> dict[str, tuple[float, float, float]]:
     return out
 
 
-def main(names: list[str]) -> None:
+def main(names: list[str] | None = None) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from dualnerf.io import PreprocessConfig, preprocess
     from dualnerf.scenes import SCENES, generate_scene
