@@ -6,6 +6,8 @@ of `make bench`; the results land in the store (default ./cache or $DUALNERF_CAC
 ablation on the same scene reuses them, and an interrupted run resumes from the fit's checkpoints.
 
     python -m benchmarks.fit_scenes bear portrait
+    DUALNERF_FIT_THREADS=1 python -m benchmarks.fit_scenes bear   (fit threads: non-semantic, same keys;
+                                                                   one thread wastes less on a busy machine)
 """
 from __future__ import annotations
 
@@ -31,7 +33,9 @@ def _steps_to_fit(name: str) -> list:
     from stages.workflow import load_workflow
 
     workflow = load_workflow(Path(__file__).parent.parent / "workflows" / "ablation.toml",
-                             [f"scene={name}", f"edit={BUILDERS[name][1][0].id}"])
+                             [f"scene={name}", f"edit={BUILDERS[name][1][0].id}"]
+                             + ([f"fit.num_threads={os.environ['DUALNERF_FIT_THREADS']}"]
+                                if os.environ.get("DUALNERF_FIT_THREADS") else []))
     every: list = []
     for step in workflow.steps:
         _with_upstream(step, every)
