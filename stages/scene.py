@@ -23,7 +23,9 @@ class SceneParams:
 
 class SceneStage(Stage):
     name = "scene"
-    version = "1"
+    # 2: campsite gained the geometry edit 'canoe' (gt/edits/canoe) and scene.toml records each edit's
+    # kind; the views and the earlier edits render byte-identically.
+    version = "2"
     Params = SceneParams
     resources = Resources(cpus=2, gpus=0, memory_gb=2)
     nonsemantic_params = frozenset({"workers"})

@@ -252,6 +252,6 @@ def test_scene_command(tmp_path, capsys):
     assert main(["scene", "tiny", "--out", str(out)]) == 2          # refuses a non-empty folder
     assert "not empty" in capsys.readouterr().err
     assert main(["scene", "castle", "--out", str(tmp_path / "c")]) == 2
-    assert "available scenes: campsite, tiny" in capsys.readouterr().err
+    assert "available scenes: bear, campsite, portrait, tiny" in capsys.readouterr().err
     assert main(["scene", "--list"]) == 0
     assert "blue_tent" in capsys.readouterr().out

@@ -9,7 +9,7 @@ import numpy as np
 
 from dualnerf.scenes.cameras import OPENCV_TO_OPENGL, orbit
 from dualnerf.scenes.library import BUILDERS, SCENES, SceneConfig
-from dualnerf.scenes.render import camera_rays, pattern_fields, shade, to_image, trace
+from dualnerf.scenes.render import camera_rays, pattern_fields, retrace_edit, shade, to_image, trace
 
 GENERATOR = "dualnerf.scenes procedural ray caster (synthetic scene, not a photograph)"
 POINTS_PER_VIEW = 200
@@ -61,6 +61,12 @@ def render_view(config: SceneConfig, world, c2w: np.ndarray, variants) -> tuple[
     images = {}
     for variant in variants:
         colour = shade(world, geometry, variant, fields)
+        if variant is not None and variant.changes_geometry:
+            # Objects added or removed: re-trace the rays whose hit or shadow can change.
+            edited = variant.apply(world)
+            rays, edited_geometry = retrace_edit(world, edited, geometry, o, d, pixel_angle=1.0 / f)
+            if edited_geometry is not None:
+                colour[rays] = shade(edited, edited_geometry, variant)
         images[variant.id if variant else None] = to_image(colour, config.width, config.height, s)
     return images, geometry
 
@@ -181,7 +187,8 @@ def _write_scene_toml(path: Path, config: SceneConfig, seed: int, edits) -> None
              f"camera_radius = {config.camera_radius}", ""]
     for e in edits:
         lines += ["[[edits]]", f"id = {q(e.id)}", f"instruction = {q(e.instruction)}",
-                  f"source_caption = {q(e.source_caption)}", f"target_caption = {q(e.target_caption)}", ""]
+                  f"source_caption = {q(e.source_caption)}", f"target_caption = {q(e.target_caption)}",
+                  f"kind = {q(e.kind)}", ""]
     path.write_text("\n".join(lines))
 
 

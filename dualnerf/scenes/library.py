@@ -1,4 +1,14 @@
-"""The procedural scenes: layout, materials, camera rig and edit vocabulary of `tiny` and `campsite`.
+"""The procedural scenes: layout, materials, camera rig and edit vocabulary of each scene.
+
+    tiny       CI scene: a tent, a crate, a rock and a tree on a 200 degree arc
+    campsite   outdoor 360 degree scene (a camp among trees)
+    bear       object-centric 360 degree capture: a bear statue on a stone pedestal
+    portrait   forward-facing capture: a head-and-shoulders figure before a hedge, on a frontal arc
+
+Every scene but `tiny` has the three kinds of edit (`EditDef.kind`): "recolour" (one object's
+colours), "global" (season, weather or light over most of the image) and "geometry" (an object
+added or removed, traced by the same ray caster so occlusion and shadows are exact).
+`BUILDERS` / `SCENES` are the single list of scenes and their edits that other code iterates.
 
 World axes: z up, metres, ground at z = 0, scene centre at the origin. The background is a textured dome
 (distant hills, sky and clouds) at finite distance, so SfM finds points on it and the normalisation to
@@ -24,6 +34,8 @@ from dualnerf.scenes.geometry import (
 from dualnerf.scenes.materials import Material
 from dualnerf.scenes.render import SceneObject, Variant, World
 
+EDIT_KINDS = ("recolour", "global", "geometry")
+
 
 @dataclass(frozen=True)
 class EditDef:
@@ -32,6 +44,7 @@ class EditDef:
     source_caption: str
     target_caption: str
     variant: Variant
+    kind: str = "recolour"      # one of EDIT_KINDS
 
 
 @dataclass(frozen=True)
@@ -78,12 +91,13 @@ AUTUMN_FOLIAGE = ((0.80, 0.42, 0.08), (0.70, 0.22, 0.06), (0.90, 0.68, 0.12))
 AUTUMN_GRASS = ((0.55, 0.48, 0.22), (0.62, 0.50, 0.25), (0.45, 0.32, 0.18))
 
 SNOW_EDIT = EditDef("snow", "Make it look like it just snowed", "a campsite with a tent on grass",
-                    "a campsite with a tent covered in fresh snow", Variant("snow", snow=True))
+                    "a campsite with a tent covered in fresh snow", Variant("snow", snow=True), kind="global")
 BLUE_TENT_EDIT = EditDef("blue_tent", "Turn the tent blue", "a campsite with an orange tent",
                          "a campsite with a blue tent", Variant("blue_tent", recolour={"tent": TENT_BLUE}))
 AUTUMN_EDIT = EditDef("autumn", "Make it autumn", "a campsite with green trees in summer",
                       "a campsite with orange trees in autumn",
-                      Variant("autumn", recolour={"foliage": AUTUMN_FOLIAGE, "grass": AUTUMN_GRASS}))
+                      Variant("autumn", recolour={"foliage": AUTUMN_FOLIAGE, "grass": AUTUMN_GRASS}),
+                      kind="global")
 
 
 def _tree(name: str, x: float, y: float, height: float, conifer: bool) -> list[SceneObject]:
@@ -151,12 +165,151 @@ def campsite_world(config: SceneConfig, seed: int) -> World:
     return World(tuple(objects), seed=seed)
 
 
+# --- campsite: a geometry edit (an added canoe; appended, so every other object keeps its texture) ---
+CANOE = Material("canoe", ((0.78, 0.12, 0.10), (0.62, 0.08, 0.07), (0.90, 0.80, 0.70)),
+                 frequency=1.4, octaves=5, patch_amount=0.15, detail=0.3)
+CANOE_EDIT = EditDef(
+    "canoe", "Put a red canoe next to the campfire", "a campsite with a tent and a campfire",
+    "a campsite with a tent, a campfire and a red canoe",
+    Variant("canoe", add=(SceneObject("canoe", Ellipsoid(centre=(2.3, -1.9, 0.06), radii=(1.0, 0.3, 0.2),
+                                                         rotation=rotation_z(0.8)), CANOE),)),
+    kind="geometry")
+
+# --- bear: an object-centric 360 degree capture of a statue on a pedestal ---
+FUR = Material("fur", ((0.42, 0.27, 0.15), (0.33, 0.20, 0.11), (0.55, 0.38, 0.22)),
+               frequency=3.0, octaves=6, patch_amount=0.3, detail=0.45)
+PAWS = Material("paws", ((0.25, 0.16, 0.09), (0.19, 0.12, 0.07), (0.34, 0.23, 0.13)),
+                frequency=3.0, octaves=6, patch_amount=0.3, detail=0.45)
+STONE = Material("stone", ((0.68, 0.66, 0.62), (0.55, 0.54, 0.52), (0.78, 0.74, 0.66)),
+                 frequency=2.0, octaves=6, patch_amount=0.35, detail=0.5)
+GRAVEL = Material("gravel", ((0.55, 0.50, 0.42), (0.42, 0.40, 0.36), (0.30, 0.42, 0.18)),
+                  frequency=0.6, octaves=8, patch_amount=0.45, detail=0.5)
+PARTY_HAT = Material("party_hat", ((0.90, 0.15, 0.45), (0.98, 0.80, 0.15), (0.20, 0.50, 0.90)),
+                     frequency=6.0, octaves=4, patch_amount=0.4, detail=0.3)
+PANDA_WHITE = ((0.90, 0.89, 0.86), (0.82, 0.81, 0.78), (0.95, 0.94, 0.92))
+PANDA_BLACK = ((0.08, 0.08, 0.08), (0.13, 0.12, 0.12), (0.04, 0.04, 0.04))
+WINTER_SKY = ((0.88, 0.90, 0.94), (0.62, 0.68, 0.78), (0.92, 0.92, 0.94))
+
+PEDESTAL_TOP = 0.35
+BEAR_HEAD = (0.62, 0.0, 1.02)
+
+PANDA_EDIT = EditDef("panda", "Turn the bear into a panda", "a statue of a brown bear on a stone pedestal",
+                     "a statue of a black and white panda on a stone pedestal",
+                     Variant("panda", recolour={"fur": PANDA_WHITE, "paws": PANDA_BLACK}), kind="recolour")
+WINTER_EDIT = EditDef("winter", "Make it winter", "a bear statue in a gravel garden on a summer day",
+                      "a bear statue in a snowy garden on a winter day",
+                      Variant("winter", snow=True, recolour={"sky": WINTER_SKY}), kind="global")
+PARTY_HAT_EDIT = EditDef(
+    "party_hat", "Give the bear a party hat", "a statue of a bear on a stone pedestal",
+    "a statue of a bear wearing a party hat on a stone pedestal",
+    Variant("party_hat", add=(SceneObject("party_hat", pyramid((BEAR_HEAD[0] - 0.03, 0.0, BEAR_HEAD[2] + 0.13),
+                                                               radius=0.14, height=0.42, sides=14), PARTY_HAT),)),
+    kind="geometry")
+
+
+def bear_world(config: SceneConfig, seed: int) -> World:
+    hx, _, hz = BEAR_HEAD
+    objects = [
+        SceneObject("pedestal", Cylinder(centre=(0.0, 0.0, 0.0), radius=0.95, height=PEDESTAL_TOP), STONE),
+        SceneObject("body", Ellipsoid(centre=(0.0, 0.0, 0.78), radii=(0.58, 0.32, 0.30)), FUR),
+        SceneObject("head", Ellipsoid(centre=BEAR_HEAD, radii=(0.22, 0.20, 0.20)), FUR),
+        SceneObject("snout", Ellipsoid(centre=(hx + 0.2, 0.0, hz - 0.05), radii=(0.11, 0.09, 0.08)), PAWS),
+        SceneObject("tail", Ellipsoid(centre=(-0.58, 0.0, 0.86), radii=(0.07, 0.07, 0.07)), FUR),
+    ]
+    for side, y in (("left", 0.14), ("right", -0.14)):
+        objects.append(SceneObject(f"ear_{side}", Ellipsoid(centre=(hx - 0.04, y, hz + 0.17),
+                                                            radii=(0.05, 0.07, 0.07)), PAWS))
+    for i, (x, y) in enumerate(((0.35, 0.17), (0.35, -0.17), (-0.35, 0.17), (-0.35, -0.17))):
+        objects.append(SceneObject(f"leg_{i}", Cylinder(centre=(x, y, PEDESTAL_TOP), radius=0.1,
+                                                        height=0.42), PAWS))
+    # Rocks and shrubs around the pedestal (inside the camera circle) give SfM near points all round.
+    for i, a in enumerate(np.linspace(0.3, 2 * np.pi + 0.3, 6, endpoint=False)):
+        r = 1.7 + 0.25 * np.sin(3 * a)
+        objects.append(SceneObject(f"rock_{i}", Ellipsoid(centre=(r * np.cos(a), r * np.sin(a), 0.05),
+                                                          radii=(0.22, 0.18, 0.16)), ROCK))
+    for i, a in enumerate(np.linspace(0.0, 2 * np.pi, 5, endpoint=False)):
+        objects.append(SceneObject(f"shrub_{i}", Ellipsoid(centre=(6.5 * np.cos(a), 6.5 * np.sin(a), 0.4),
+                                                           radii=(0.7, 0.7, 0.6)), FOLIAGE))
+    objects += [SceneObject("ground", Disk(radius=config.dome_radius), GRAVEL),
+                SceneObject("sky", Dome(radius=config.dome_radius), SKY)]
+    return World(tuple(objects), seed=seed)
+
+
+# --- portrait: a forward-facing head-and-shoulders capture before a hedge ---
+SKIN = Material("skin", ((0.86, 0.66, 0.54), (0.80, 0.58, 0.47), (0.74, 0.50, 0.42)),
+                frequency=4.0, octaves=5, patch_amount=0.25, detail=0.25, speckle=0.2)
+HAIR = Material("hair", ((0.22, 0.14, 0.08), (0.30, 0.19, 0.10), (0.14, 0.09, 0.05)),
+                frequency=5.0, octaves=6, patch_amount=0.3, detail=0.5)
+SWEATER = Material("sweater", ((0.18, 0.32, 0.62), (0.14, 0.25, 0.52), (0.30, 0.45, 0.72)),
+                   frequency=4.0, octaves=6, patch_amount=0.2, detail=0.4)
+EYES = Material("eyes", ((0.10, 0.08, 0.07), (0.18, 0.13, 0.10), (0.85, 0.85, 0.82)),
+                frequency=8.0, octaves=3, patch_amount=0.1, detail=0.2)
+HEDGE = Material("hedge", ((0.16, 0.38, 0.14), (0.26, 0.48, 0.18), (0.55, 0.50, 0.30)),
+                 frequency=1.6, octaves=7, patch_amount=0.4, detail=0.55)
+PAVING = Material("paving", ((0.60, 0.57, 0.52), (0.48, 0.46, 0.43), (0.70, 0.62, 0.50)),
+                  pattern="planks", plank_axis=(0.0, 1.0, 0.0), plank_width=0.3, frequency=1.0, octaves=6,
+                  patch_amount=0.3, detail=0.4)
+FELT = Material("felt", ((0.45, 0.30, 0.16), (0.36, 0.23, 0.12), (0.55, 0.40, 0.24)),
+                frequency=5.0, octaves=5, patch_amount=0.2, detail=0.35)
+RED_SWEATER = ((0.75, 0.12, 0.12), (0.60, 0.08, 0.09), (0.85, 0.30, 0.25))
+SUNSET_SKY = ((0.30, 0.22, 0.16), (0.95, 0.55, 0.30), (0.98, 0.80, 0.55))
+SUNSET_LIGHT = (1.18, 0.82, 0.58)
+
+HEAD = (0.0, 0.0, 1.72)
+
+RED_SWEATER_EDIT = EditDef("red_sweater", "Turn his sweater red", "a man in a blue sweater in front of a hedge",
+                           "a man in a red sweater in front of a hedge",
+                           Variant("red_sweater", recolour={"sweater": RED_SWEATER}), kind="recolour")
+SUNSET_EDIT = EditDef("sunset", "Make it sunset", "a portrait of a man in front of a hedge at midday",
+                      "a portrait of a man in front of a hedge in warm sunset light",
+                      Variant("sunset", light=SUNSET_LIGHT, recolour={"sky": SUNSET_SKY}), kind="global")
+COWBOY_HAT_EDIT = EditDef(
+    "cowboy_hat", "Give him a cowboy hat", "a portrait of a man in front of a hedge",
+    "a portrait of a man wearing a cowboy hat in front of a hedge",
+    Variant("cowboy_hat", add=(
+        SceneObject("hat_brim", Cylinder(centre=(HEAD[0], HEAD[1] + 0.01, HEAD[2] + 0.12), radius=0.32,
+                                         height=0.03), FELT),
+        SceneObject("hat_crown", Cylinder(centre=(HEAD[0], HEAD[1] + 0.01, HEAD[2] + 0.14), radius=0.15,
+                                          height=0.17), FELT))),
+    kind="geometry")
+
+
+def portrait_world(config: SceneConfig, seed: int) -> World:
+    x, y, z = HEAD
+    objects = [
+        SceneObject("torso", Ellipsoid(centre=(0.0, 0.02, 0.98), radii=(0.52, 0.24, 0.46)), SWEATER),
+        SceneObject("neck", Cylinder(centre=(0.0, 0.01, 1.38), radius=0.075, height=0.2), SKIN),
+        SceneObject("head", Ellipsoid(centre=HEAD, radii=(0.15, 0.17, 0.21)), SKIN),
+        SceneObject("hair", Ellipsoid(centre=(x, y + 0.035, z + 0.06), radii=(0.16, 0.165, 0.19)), HAIR),
+        SceneObject("nose", Ellipsoid(centre=(x, y - 0.165, z - 0.02), radii=(0.028, 0.04, 0.05)), SKIN),
+        SceneObject("ear_left", Ellipsoid(centre=(x - 0.15, y, z), radii=(0.025, 0.04, 0.06)), SKIN),
+        SceneObject("ear_right", Ellipsoid(centre=(x + 0.15, y, z), radii=(0.025, 0.04, 0.06)), SKIN),
+        SceneObject("eye_left", Ellipsoid(centre=(x - 0.06, y - 0.145, z + 0.04), radii=(0.025, 0.02, 0.016)),
+                    EYES),
+        SceneObject("eye_right", Ellipsoid(centre=(x + 0.06, y - 0.145, z + 0.04), radii=(0.025, 0.02, 0.016)),
+                    EYES),
+        # The backdrop: a tall hedge behind the figure, wider than the camera arc sees.
+        SceneObject("hedge", box((0.0, 1.9, 2.0), (9.0, 0.4, 2.0)), HEDGE),
+        SceneObject("ground", Disk(radius=config.dome_radius), PAVING),
+        SceneObject("sky", Dome(radius=config.dome_radius), SKY),
+    ]
+    return World(tuple(objects), seed=seed)
+
+
 TINY = SceneConfig("tiny", width=160, height=120, n_views=26, arc_degrees=200.0, camera_radius=5.0,
                    camera_height=2.2, height_wobble=0.25, fov_degrees=60.0, supersample=2, dome_radius=9.0)
 CAMPSITE = SceneConfig("campsite", width=256, height=192, n_views=48, arc_degrees=360.0, camera_radius=6.5,
                        camera_height=2.6, height_wobble=0.3, fov_degrees=60.0, supersample=2,
                        dome_radius=11.0)
+BEAR = SceneConfig("bear", width=256, height=192, n_views=48, arc_degrees=360.0, camera_radius=3.4,
+                   camera_height=1.5, height_wobble=0.25, fov_degrees=60.0, supersample=2, dome_radius=9.0,
+                   target_height=0.7)
+PORTRAIT = SceneConfig("portrait", width=256, height=192, n_views=45, arc_degrees=80.0, camera_radius=2.3,
+                       camera_height=1.65, height_wobble=0.12, fov_degrees=50.0, supersample=2,
+                       dome_radius=12.0, target_height=1.45)
 
 BUILDERS = {"tiny": (tiny_world, (SNOW_EDIT, BLUE_TENT_EDIT)),
-            "campsite": (campsite_world, (SNOW_EDIT, BLUE_TENT_EDIT, AUTUMN_EDIT))}
-SCENES: dict[str, SceneConfig] = {"tiny": TINY, "campsite": CAMPSITE}
+            "campsite": (campsite_world, (SNOW_EDIT, BLUE_TENT_EDIT, AUTUMN_EDIT, CANOE_EDIT)),
+            "bear": (bear_world, (PANDA_EDIT, WINTER_EDIT, PARTY_HAT_EDIT)),
+            "portrait": (portrait_world, (RED_SWEATER_EDIT, SUNSET_EDIT, COWBOY_HAT_EDIT))}
+SCENES: dict[str, SceneConfig] = {"tiny": TINY, "campsite": CAMPSITE, "bear": BEAR, "portrait": PORTRAIT}

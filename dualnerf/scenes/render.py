@@ -6,6 +6,7 @@ box-averaged, which equals integrating over the pixel area (pixel centres at int
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,11 +24,35 @@ class SceneObject:
 
 @dataclass(frozen=True)
 class Variant:
-    """A material variant of the scene: palettes swapped by material tag, optionally snow on top."""
+    """A variant of the scene: palettes swapped by material tag, optionally snow on top, a light colour
+    (a global tint of every surface and the sky, e.g. sunset), and objects added or removed (by name).
+
+    Added objects go after the world's own, and removed ones are hidden rather than dropped, so every
+    other object keeps its index and hence its texture seed: outside what the edit touches, the
+    variant renders exactly like the original.
+    """
 
     id: str
     recolour: dict[str, Palette] = field(default_factory=dict)
     snow: bool = False
+    light: tuple[float, float, float] | None = None
+    add: tuple[SceneObject, ...] = ()
+    remove: tuple[str, ...] = ()
+
+    @property
+    def changes_geometry(self) -> bool:
+        return bool(self.add or self.remove)
+
+    def apply(self, world: World) -> World:
+        """The world this variant renders: the original plus `add`, with `remove` hidden."""
+        if not self.changes_geometry:
+            return world
+        names = {o.name for o in world.objects}
+        unknown = sorted(set(self.remove) - names)
+        if unknown:
+            raise ValueError(f"variant '{self.id}' removes unknown object(s) {', '.join(unknown)}")
+        return dataclasses.replace(world, objects=world.objects + tuple(self.add),
+                                   hidden=world.hidden | frozenset(self.remove))
 
 
 @dataclass(frozen=True)
@@ -37,6 +62,7 @@ class World:
     sun_strength: float = 0.85
     ambient: float = 0.38
     seed: int = 0
+    hidden: frozenset[str] = frozenset()     # objects left out of the render (removed by an edit)
 
 
 @dataclass
@@ -90,6 +116,8 @@ def trace(world: World, o: np.ndarray, d: np.ndarray, pixel_angle: float) -> Geo
     index = np.full(len(o), -1, dtype=np.int64)
     normals = np.zeros_like(o)
     for k, obj in enumerate(world.objects):
+        if obj.name in world.hidden:
+            continue
         rays = _cone_candidates(o[0], d, obj.primitive.bound())
         if rays is None:
             rays = np.arange(len(o))
@@ -117,13 +145,11 @@ def _sun_visibility(world: World, points, normals, index) -> np.ndarray:
     todo = ~emissive
     o = points[todo] + 1e-3 * normals[todo]
     d = np.broadcast_to(sun, o.shape)
-    # An orthonormal basis whose third axis is the sun direction, for the parallel-ray culling.
-    basis = np.linalg.qr(np.stack([sun, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], axis=1))[0]
-    basis = np.roll(basis, -1, axis=1) * np.sign(basis[:, 0] @ sun)
+    basis = _sun_basis(sun)
     o_projected = o @ basis
     blocked = np.zeros(len(o), dtype=bool)
     for obj in world.objects:
-        if isinstance(obj.primitive, Dome):
+        if isinstance(obj.primitive, Dome) or obj.name in world.hidden:
             continue
         rays = _parallel_candidates(o_projected[:, :2], o_projected[:, 2], basis, obj.primitive.bound())
         rays = np.nonzero(~blocked)[0] if rays is None else rays[~blocked[rays]]
@@ -131,6 +157,45 @@ def _sun_visibility(world: World, points, normals, index) -> np.ndarray:
         blocked[rays[np.isfinite(t)]] = True
     lit[todo] = np.where(blocked, 0.0, 1.0)
     return lit
+
+
+def _sun_basis(sun: np.ndarray) -> np.ndarray:
+    """An orthonormal basis whose third axis is the (unit) sun direction, for parallel-ray culling."""
+    basis = np.linalg.qr(np.stack([sun, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], axis=1))[0]
+    return np.roll(basis, -1, axis=1) * np.sign(basis[:, 0] @ sun)
+
+
+def retrace_edit(world: World, edited: World, base: Geometry, o: np.ndarray, d: np.ndarray,
+                 pixel_angle: float) -> tuple[np.ndarray, Geometry | None]:
+    """Rays whose hit or shadow a geometry edit can change, and their geometry in the `edited` world.
+
+    A ray is affected when it passes through the bounding sphere of an added or removed object, hit a
+    removed object, or its hit's shadow ray passes through such a sphere. Every other ray sees exactly
+    what it saw in `world`, so re-tracing only the affected ones renders the edited view exactly, at
+    a fraction of a full trace. Returns (ray indices, their Geometry), or (empty, None) if none.
+    """
+    everything = np.arange(len(o))
+    own = len(world.objects)
+    added = list(edited.objects[own:])
+    removed = [k for k, obj in enumerate(world.objects) if obj.name in edited.hidden - world.hidden]
+    sun = np.asarray(world.sun_direction, dtype=np.float64)
+    sun = sun / np.linalg.norm(sun)
+    basis = _sun_basis(sun)
+    projected = (base.points + 1e-3 * base.normals) @ basis
+    affected = np.zeros(len(o), dtype=bool)
+    for obj in added + [world.objects[k] for k in removed]:
+        bound = obj.primitive.bound()
+        rays = _cone_candidates(o[0], d, bound)
+        if bound is None or rays is None:            # unbounded, or the camera is inside its sphere
+            return everything, trace(edited, o, d, pixel_angle)
+        affected[rays] = True
+        affected[_parallel_candidates(projected[:, :2], projected[:, 2], basis, bound)] = True
+    for k in removed:
+        affected |= base.object_index == k
+    rays = np.nonzero(affected)[0]
+    if len(rays) == 0:
+        return rays, None
+    return rays, trace(edited, o[rays], d[rays], pixel_angle)
 
 
 def shade(world: World, geometry: Geometry, variant: Variant | None = None,
@@ -161,6 +226,8 @@ def shade(world: World, geometry: Geometry, variant: Variant | None = None,
         # Ambient light comes from the sky above: surfaces facing down get less of it.
         ambient = world.ambient * (0.75 + 0.25 * n[:, 2]).astype(np.float32)
         colour[sel] = albedo * (ambient + world.sun_strength * lambert)[:, None]
+    if variant.light is not None:
+        colour = colour * np.asarray(variant.light, dtype=np.float32)
     return np.clip(colour, 0.0, 1.0)
 
 

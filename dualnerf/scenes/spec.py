@@ -3,7 +3,8 @@
 Scene folder layout (a contract other stages code against):
     images/<name>.png                      original views, 8-bit RGB
     scene.toml                             [scene] name, generator, seed, width, height
-                                           [[edits]] id, instruction, source_caption, target_caption
+                                           [[edits]] id, instruction, source_caption, target_caption,
+                                                     kind (optional: recolour | global | geometry)
     gt/transforms.json                     ground-truth cameras, nerfstudio convention
     gt/edits/<edit_id>/images/<name>.png   ground-truth edited views (same cameras, edited materials)
     gt/edits/<edit_id>/masks/<name>.png    8-bit masks, 255 where the edit changes the colour
@@ -34,6 +35,7 @@ class EditSpec:
     instruction: str
     source_caption: str
     target_caption: str
+    kind: str = ""           # recolour | global | geometry ("" in folders written before kinds existed)
 
 
 @dataclass(frozen=True)
@@ -74,8 +76,11 @@ def load_scene_spec(folder: Path) -> SceneSpec:
         where = f"[[edits]] entry {i + 1}"
         if not isinstance(entry, dict):
             raise SceneSpecError(f"{path}: {where} must be a table.")
-        edits.append(EditSpec(**{key: _field(entry, key, str, path, where)
-                                 for key in ("id", "instruction", "source_caption", "target_caption")}))
+        fields = {key: _field(entry, key, str, path, where)
+                  for key in ("id", "instruction", "source_caption", "target_caption")}
+        if "kind" in entry:
+            fields["kind"] = _field(entry, "kind", str, path, where)
+        edits.append(EditSpec(**fields))
     for i, edit in enumerate(edits):
         check_plain_name(edit.id, error=SceneSpecError, where=f"{path}: [[edits]] entry {i + 1}", field="id")
     check_file_name(name, error=SceneSpecError, where=f"{path}: [scene]", field="name")

@@ -13,7 +13,7 @@ def register(subparsers) -> None:
         "scene", help="render a procedural test scene (synthetic) with ground-truth edits",
         description="Render a procedural scene: synthetic views from a ray caster (not photographs), its "
                     "edit vocabulary (scene.toml) and 3D-consistent ground-truth edited views and masks.")
-    parser.add_argument("name", nargs="?", help="scene name (see --list)")
+    parser.add_argument("name", nargs="?", help="scene name, or 'list' to list the scenes")
     parser.add_argument("--out", type=Path, help="output folder (must not exist or be empty)")
     parser.add_argument("--list", action="store_true", help="list the scenes and their edits")
     parser.add_argument("--seed", type=int, default=0, help="texture seed (default 0)")
@@ -36,15 +36,16 @@ def _scene(args: argparse.Namespace) -> int:
     from dualnerf.scenes import SCENES, generate_scene, scene_config
     from dualnerf.scenes.generate import BUILDERS
 
-    if args.list:
-        for name in sorted(SCENES):
+    if args.list or args.name == "list":
+        for name in SCENES:
             c = SCENES[name]
-            edits = ", ".join(e.id for e in BUILDERS[name][1])
-            print(f"{name:10s} {c.n_views} views {c.width}x{c.height}  edits: {edits}")
+            edits = ", ".join(f"{e.id} ({e.kind})" for e in BUILDERS[name][1])
+            rig = "360 deg orbit" if c.arc_degrees >= 360 else f"{c.arc_degrees:.0f} deg arc"
+            print(f"{name:10s} {c.n_views} views {c.width}x{c.height} {rig:14s} edits: {edits}")
         return 0
     if not args.name or args.out is None:
         raise SceneCommandError("give a scene name and --out DIR, e.g. `dualnerf scene campsite --out "
-                                "data/campsite` (`dualnerf scene --list` shows the scenes).")
+                                "data/campsite` (`dualnerf scene list` shows the scenes).")
     if args.out.exists() and any(args.out.iterdir()):
         raise SceneCommandError(f"{args.out} exists and is not empty; choose a new folder or remove it.")
     overrides = {k: v for k, v in (("width", args.width), ("height", args.height), ("n_views", args.n_views),
