@@ -97,7 +97,7 @@ class IterativeDatasetUpdate:
     """The editing loop's state and steps. Build, optionally `load_state`, then `run`."""
 
     def __init__(self, config: IDUConfig, static_field, dataset, editor, instruction: str, *,
-                 encoder=None, cci_text: str | None = None, device: str = "cpu"):
+                 encoder=None, cci_text: str | None = None, device: str = "cpu", probe=None):
         if config.consistency and encoder is None:
             raise IDUConfigError("consistency (CCI) is on but no image-text encoder was given; set encoder "
                                  "'proxy' or 'clip', or turn consistency off.")
@@ -145,6 +145,10 @@ class IterativeDatasetUpdate:
                                         "blend_color": [], "temperature": [], "cci_weight_min": [],
                                         "cci_weight_max": []}
         self.cci_history: list[dict] = []
+        # Optional dualnerf.convergence.ConvergenceProbe: PSNR of a few training-view renders to the
+        # ground-truth edit at regular iterations (deterministic renders: probing does not change the run).
+        self.probe = probe
+        self.convergence: list[dict] = []
 
     # ---- the loop ------------------------------------------------------------------------------
     def blend_at(self, iteration: int):
@@ -231,6 +235,7 @@ class IterativeDatasetUpdate:
         end = cfg.iterations if until is None else min(until, cfg.iterations)
         while self.iteration < end:
             t = self.iteration
+            self._probe(t)
             if t % cfg.edit_rate == 0:
                 self.dataset_update(t)
             metrics = self.train_step(t)
@@ -239,6 +244,19 @@ class IterativeDatasetUpdate:
                 progress(1, loss=float(metrics["loss"]), psnr=float(metrics["psnr"]))
             if on_round_end is not None and self.iteration % cfg.edit_rate == 0 and self.iteration < cfg.iterations:
                 on_round_end(self.iteration)
+        if self.iteration == cfg.iterations:
+            self._probe(self.iteration)
+
+    def _probe(self, iteration: int) -> None:
+        """Record the convergence probe's PSNRs of the model after `iteration` training iterations."""
+        last = self.config.iterations
+        if self.probe is None or not self.probe.due(iteration, last):
+            return
+        if self.convergence and self.convergence[-1]["iteration"] >= iteration:
+            return
+        model = self.model
+        blend = self.blend_at(min(iteration, last - 1))
+        self.convergence.append(self.probe.measure(model, blend, iteration))
 
     # ---- results -------------------------------------------------------------------------------
     def final_model(self):
@@ -255,8 +273,19 @@ class IterativeDatasetUpdate:
                                         "temperature", "render_retreat", "score", "weight")},
                 "acceptance_rate": (sum(bool(u["accepted"]) for u in acc) / len(acc)) if acc else None,
                 "cci": self.cci_history, "train_views": self.train_views,
+                "convergence": self.convergence_json(),
                 "toggles": {"dual_field": self.config.dual_field, "annealing": self.config.annealing,
                             "consistency": self.config.consistency}}
+
+    def convergence_json(self) -> dict | None:
+        """The probe's columns: iteration, psnr_in (to the ground-truth edit inside its mask), psnr_out (to the
+        original outside it), and the probed views; None without a probe."""
+        if self.probe is None:
+            return None
+        return {"iteration": [c["iteration"] for c in self.convergence],
+                "psnr_in": [c["psnr_in"] for c in self.convergence],
+                "psnr_out": [c["psnr_out"] for c in self.convergence],
+                "views": self.probe.views, "scale": 1.0 / self.probe.factor}
 
     # ---- checkpoint state ----------------------------------------------------------------------
     def save_state(self, folder: Path) -> None:
@@ -267,7 +296,7 @@ class IterativeDatasetUpdate:
         torch.save(tensors, folder / "state.pt")
         doc = {"version": STATE_FORMAT_VERSION, "iteration": self.iteration, "config": self.config.to_json(),
                "sa_rng": self.sa_rng.bit_generator.state, "updates": self.updates, "curves": self.curves,
-               "cci": self.cci_history}
+               "cci": self.cci_history, "convergence": self.convergence}
         (folder / "state.json").write_text(json.dumps(doc))
 
     def load_state(self, folder: Path) -> None:
@@ -288,3 +317,4 @@ class IterativeDatasetUpdate:
         self.updates = doc["updates"]
         self.curves = doc["curves"]
         self.cci_history = doc["cci"]
+        self.convergence = doc.get("convergence", [])

@@ -7,11 +7,11 @@ API:
         -> (t (R,S) interval midpoints, delta (R,S) interval lengths)
     composite(sigma (R,S), delta (R,S)) -> weights (R,S)        w_i = T_i (1 - exp(-delta_i sigma_i))
     render_rays(model, origins, dirs, near, far, *, blend=None, retreat=1.0, generator=None,
-                with_distortion=False, samples_per_ray=None)
+                with_distortion=False, samples_per_ray=None, termination_eps=0.0)
         -> dict(color (R,3), opacity (R,), evaluated: int[, distortion (R,)])
     distortion(weights (R,S), t (R,S), delta (R,S), length (R,)) -> (R,)   mip-NeRF 360 distortion loss
     render_view(model, c2w, intrinsics, width, height, near, far, *, blend=None, retreat=1.0,
-                chunk=8192) -> (H,W,3) float tensor in [0,1] (CPU)
+                chunk=8192, termination_eps=RENDER_TERMINATION_EPS) -> (H,W,3) float tensor in [0,1] (CPU)
 
 `model` is a RadianceField (static or single-field baseline) or a DualField; blend=None renders the
 static/single field, blend=(w_density, w_color) the fused dual field (see dualnerf.dual_field).
@@ -106,11 +106,51 @@ def distortion(weights: torch.Tensor, t: torch.Tensor, delta: torch.Tensor, leng
     return 2.0 * (weights * (s * w_before - ws_before)).sum(-1) + (weights ** 2 * ds).sum(-1) / 3.0
 
 
+# Early ray termination in full-image renders: a sample is skipped once the transmittance in front of
+# its segment is below this, which changes a colour by at most this much (see _query_until_opaque): far
+# below one 8-bit step (1/255 = 0.004). Training renders never terminate early (gradients need every sample).
+RENDER_TERMINATION_EPS = 1e-4
+# Samples per ray evaluated together before the transmittance is checked again.
+TERMINATION_SEGMENT = 8
+
+
+def _query_until_opaque(model, points, dirs, delta, mask, blend, retreat, eps: float):
+    """Evaluate the field front to back in segments of TERMINATION_SEGMENT samples per ray, only on rays
+    whose transmittance before the segment is still >= eps. A skipped sample gets sigma = 0, so its weight
+    (at most the transmittance T < eps in front of it) goes to the background term instead: the colour
+    changes by sum_skipped w_i (c_i - c_bg), i.e. by less than eps per channel. Rays that never fall below
+    eps evaluate exactly the samples (and colours) of the reference path.
+    Returns (evaluated mask (R,S), sigma (R,S) with 0 where not evaluated, h_color of the evaluated samples
+    in row-major order of the mask)."""
+    n_rays, n_samples = mask.shape
+    sigma = torch.zeros(mask.shape, dtype=points.dtype, device=points.device)
+    colors = torch.zeros((n_rays, n_samples, 3), dtype=points.dtype, device=points.device)
+    evaluated = torch.zeros_like(mask)
+    optical_depth = torch.zeros(n_rays, dtype=points.dtype, device=points.device)
+    log_eps = -torch.log(torch.tensor(eps, dtype=points.dtype)).item()
+    for start in range(0, n_samples, TERMINATION_SEGMENT):
+        stop = min(start + TERMINATION_SEGMENT, n_samples)
+        seg = mask[:, start:stop] & (optical_depth <= log_eps)[:, None]
+        if not bool(seg.any()):
+            break
+        ray_id = torch.nonzero(seg)[:, 0]
+        h_sigma, h_color = model.query(points[:, start:stop][seg], dirs[ray_id], blend=blend, retreat=retreat)
+        seg_sigma = torch.zeros(seg.shape, dtype=h_sigma.dtype, device=h_sigma.device).masked_scatter(
+            seg, decode_density(h_sigma))
+        sigma[:, start:stop] = seg_sigma
+        colors[:, start:stop][seg] = h_color
+        evaluated[:, start:stop] = seg
+        optical_depth = optical_depth + (seg_sigma * delta[:, start:stop]).sum(-1)
+    return evaluated, sigma, colors[evaluated]
+
+
 def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float = 1.0,
                 generator: torch.Generator | None = None, with_distortion: bool = False,
-                samples_per_ray: int | None = None) -> dict:
+                samples_per_ray: int | None = None, termination_eps: float = 0.0) -> dict:
     """Colours of rays (training: jittered, `generator`; else bin centres) with `samples_per_ray` field
-    evaluations each (default FieldConfig.samples_per_ray)."""
+    evaluations each (default FieldConfig.samples_per_ray). termination_eps > 0: early ray termination,
+    samples behind a transmittance below it are not evaluated (see _query_until_opaque); 0: every
+    occupied sample is (the reference path, used in training)."""
     config = model.config
     n_samples = config.samples_per_ray if samples_per_ray is None else int(samples_per_ray)
     n_rays = origins.shape[0]
@@ -129,10 +169,15 @@ def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float =
     points = origins[:, None, :] + t[..., None] * dirs[:, None, :]
     # Valid: the ray overlaps the cube, and the sample's occupancy cell may hold density.
     mask = (t_end > t_start)[:, None] & grid.occupied(points)
-    ray_id = torch.nonzero(mask)[:, 0]
-    h_sigma, h_color = model.query(points[mask], dirs[ray_id], blend=blend, retreat=retreat)
-    sigma = torch.zeros(mask.shape, dtype=h_sigma.dtype, device=h_sigma.device).masked_scatter(
-        mask, decode_density(h_sigma))
+    if termination_eps > 0.0:
+        mask, sigma, h_color = _query_until_opaque(model, points, dirs, delta, mask, blend, retreat,
+                                                   termination_eps)
+        ray_id = torch.nonzero(mask)[:, 0]
+    else:
+        ray_id = torch.nonzero(mask)[:, 0]
+        h_sigma, h_color = model.query(points[mask], dirs[ray_id], blend=blend, retreat=retreat)
+        sigma = torch.zeros(mask.shape, dtype=h_sigma.dtype, device=h_sigma.device).masked_scatter(
+            mask, decode_density(h_sigma))
     weights = composite(sigma, delta)
     # Packed colour accumulation: only evaluated samples carry weight.
     color = torch.zeros(n_rays, 3, dtype=weights.dtype, device=weights.device).index_add(
@@ -148,9 +193,11 @@ def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float =
 
 @torch.no_grad()
 def render_view(model, c2w, intrinsics, width: int, height: int, near: float, far: float, *,
-                blend=None, retreat: float = 1.0, chunk: int = 8192) -> torch.Tensor:
+                blend=None, retreat: float = 1.0, chunk: int = 8192,
+                termination_eps: float = RENDER_TERMINATION_EPS) -> torch.Tensor:
     """Full image in chunks of `chunk` rays (bounded memory); deterministic (bin-centre samples), with
-    FieldConfig.render_samples_per_ray field evaluations per ray."""
+    FieldConfig.render_samples_per_ray field evaluations per ray, stopped early on rays whose transmittance
+    fell below `termination_eps` (each colour within termination_eps of the termination_eps=0 render)."""
     from dualnerf.cameras import view_rays
 
     device = next(model.parameters()).device
@@ -160,6 +207,7 @@ def render_view(model, c2w, intrinsics, width: int, height: int, near: float, fa
     out = torch.empty(origins.shape[0], 3)
     for s in range(0, origins.shape[0], chunk):
         result = render_rays(model, origins[s:s + chunk], dirs[s:s + chunk], float(near), float(far),
-                             blend=blend, retreat=retreat, samples_per_ray=model.config.render_samples_per_ray)
+                             blend=blend, retreat=retreat, samples_per_ray=model.config.render_samples_per_ray,
+                             termination_eps=termination_eps)
         out[s:s + chunk] = result["color"].float().cpu()
     return out.reshape(int(height), int(width), 3).clamp(0.0, 1.0)

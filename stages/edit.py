@@ -71,6 +71,9 @@ class EditParams:
     device: str = "cpu"
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
     checkpoint_every_rounds: int = 5    # non-semantic: resume is exact from any round
+    convergence_every: int = 100        # probe PSNR to the ground-truth edit every N iterations (0: off)
+    convergence_views: int = 3          # training views probed (procedural scenes with gt/edits/ only)
+    convergence_scale: float = 0.5      # probe render resolution relative to the dataset's
 
 
 class EditStage(Stage):
@@ -114,8 +117,13 @@ class EditStage(Stage):
                            rays_per_batch=p.rays_per_batch, learning_rate=p.lr, dual_lr_scale=p.dual_lr_scale,
                            blend=BlendSchedule(p.w_max_density, p.w_max_color, p.blend_rate),
                            annealing_config=AnnealingConfig(p.T0), seed=p.seed)
+        probe = None
+        if p.convergence_every > 0:
+            from dualnerf.convergence import probe_for_scene_edit
+            probe = probe_for_scene_edit(data_dir, dataset, p.edit_id, n_views=p.convergence_views,
+                                         scale=p.convergence_scale, every=p.convergence_every)
         idu = IterativeDatasetUpdate(config, static_field, dataset, editor, instruction, encoder=encoder,
-                                     cci_text=cci_text, device=p.device)
+                                     cci_text=cci_text, device=p.device, probe=probe)
         editor_identity = editor.identity
         encoder_identity = None if encoder is None else encoder.identity
         ctx.record(editor=editor_identity, editor_is_simulator=bool(editor_identity.get("is_simulator")),
@@ -179,6 +187,10 @@ def _check_params(p: EditParams, torch) -> None:
         raise EditStageError(f"edit: cci_text must be one of {', '.join(CCI_TEXTS)}, got '{p.cci_text}'.")
     if p.checkpoint_every_rounds < 1:
         raise EditStageError(f"edit: checkpoint_every_rounds must be >= 1, got {p.checkpoint_every_rounds}.")
+    if p.convergence_every < 0 or p.convergence_views < 1 or not 0.0 < p.convergence_scale <= 1.0:
+        raise EditStageError(f"edit: convergence_every must be >= 0 (0: off), convergence_views >= 1 and "
+                             f"convergence_scale in (0, 1]; got {p.convergence_every}, {p.convergence_views}, "
+                             f"{p.convergence_scale}.")
     if p.device.startswith("cuda") and not torch.cuda.is_available():
         raise EditStageError(f"edit: device '{p.device}' was requested but torch sees no CUDA device; "
                              f"use device='cpu'.")

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from dualnerf.metrics import METRICS, METRICS_FORMAT, METRICS_VERSION, json_value, parse_json_value
+from stages.report_convergence import write_convergence
 
 GRID_VIEWS = 4
 PATH_STRIP_FRAMES = 6
@@ -460,7 +461,7 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict) -> P
     table_doc = write_tables(columns, table, docs, out_dir)
     grid_labels = write_image_grid(rows, docs, out_dir / "grid.png")
     strip_labels = write_path_strip(rows, out_dir / "path_strip.png")
-    curves = write_curves(rows, out_dir)
+    curves = write_curves(rows, out_dir) + write_convergence(rows, out_dir)
     videos = []
     for row in rows:
         source = row.evaluate_dir / "path.mp4"
