@@ -114,7 +114,7 @@ RENDER_TERMINATION_EPS = 1e-4
 TERMINATION_SEGMENT = 8
 
 
-def _query_until_opaque(model, points, dirs, delta, mask, blend, retreat, eps: float):
+def _query_until_opaque(model, points, ray_features, delta, mask, blend, retreat, eps: float):
     """Evaluate the field front to back in segments of TERMINATION_SEGMENT samples per ray, only on rays
     whose transmittance before the segment is still >= eps. A skipped sample gets sigma = 0, so its weight
     (at most the transmittance T < eps in front of it) goes to the background term instead: the colour
@@ -134,7 +134,8 @@ def _query_until_opaque(model, points, dirs, delta, mask, blend, retreat, eps: f
         if not bool(seg.any()):
             break
         ray_id = torch.nonzero(seg)[:, 0]
-        h_sigma, h_color = model.query(points[:, start:stop][seg], dirs[ray_id], blend=blend, retreat=retreat)
+        h_sigma, h_color = model.query(points[:, start:stop][seg], None, blend=blend, retreat=retreat,
+                                       dir_features=ray_features[ray_id])
         seg_sigma = torch.zeros(seg.shape, dtype=h_sigma.dtype, device=h_sigma.device).masked_scatter(
             seg, decode_density(h_sigma))
         sigma[:, start:stop] = seg_sigma
@@ -142,6 +143,11 @@ def _query_until_opaque(model, points, dirs, delta, mask, blend, retreat, eps: f
         evaluated[:, start:stop] = seg
         optical_depth = optical_depth + (seg_sigma * delta[:, start:stop]).sum(-1)
     return evaluated, sigma, colors[evaluated]
+
+
+def _direction_features(model, dirs):
+    field = getattr(model, "static_field", model)       # a DualField's fields share one config
+    return field.direction_features(dirs)
 
 
 def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float = 1.0,
@@ -169,13 +175,16 @@ def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float =
     points = origins[:, None, :] + t[..., None] * dirs[:, None, :]
     # Valid: the ray overlaps the cube, and the sample's occupancy cell may hold density.
     mask = (t_end > t_start)[:, None] & grid.occupied(points)
+    # The view direction's SH features once per ray (not per sample), shared by the fields of a DualField.
+    ray_features = _direction_features(model, dirs)
     if termination_eps > 0.0:
-        mask, sigma, h_color = _query_until_opaque(model, points, dirs, delta, mask, blend, retreat,
+        mask, sigma, h_color = _query_until_opaque(model, points, ray_features, delta, mask, blend, retreat,
                                                    termination_eps)
         ray_id = torch.nonzero(mask)[:, 0]
     else:
         ray_id = torch.nonzero(mask)[:, 0]
-        h_sigma, h_color = model.query(points[mask], dirs[ray_id], blend=blend, retreat=retreat)
+        h_sigma, h_color = model.query(points[mask], None, blend=blend, retreat=retreat,
+                                       dir_features=ray_features[ray_id])
         sigma = torch.zeros(mask.shape, dtype=h_sigma.dtype, device=h_sigma.device).masked_scatter(
             mask, decode_density(h_sigma))
     weights = composite(sigma, delta)
@@ -183,7 +192,8 @@ def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float =
     color = torch.zeros(n_rays, 3, dtype=weights.dtype, device=weights.device).index_add(
         0, ray_id, weights[mask][:, None] * decode_color(h_color))
     opacity = weights.sum(dim=-1)
-    background = decode_color(model.query_background(dirs, blend=blend, retreat=retreat))
+    background = decode_color(model.query_background(dirs, blend=blend, retreat=retreat,
+                                                     dir_features=ray_features))
     color = color + (1.0 - opacity)[:, None] * background
     out = {"color": color, "opacity": opacity, "evaluated": int(ray_id.shape[0])}
     if with_distortion:

@@ -57,9 +57,9 @@ class EditParams:
     editor_model: str = ""              # ip2p: local diffusers folder or hub id (default timbrooks/instruct-pix2pix)
     encoder: str = "proxy"              # "proxy" (weight-free, NOT CLIP) or "clip"
     encoder_model: str = ""             # clip: folder from `dualnerf models export-clip`
-    iterations: int = 200               # scaled CPU preset (paper: 15000)
+    iterations: int = 1500              # scaled CPU preset (paper: 15000)
     edit_rate: int = 10                 # iterations between dataset updates (IN2N: 10)
-    edit_count: int = 2                 # views per dataset update (IN2N: 1)
+    edit_count: int = 1                 # views per dataset update (IN2N: 1)
     rays_per_batch: int = 1024          # (paper scale: 4096)
     lr: float = 1e-2                    # f_D's is lr / w_max_color when dual_lr_scale (see dualnerf.idu)
     dual_lr_scale: bool = True

@@ -64,3 +64,23 @@ def test_dual_field_render_terminates_on_the_fused_density_and_keeps_w0_exact():
     fused = render_view(dual, c2w, k, 10, 8, 0.1, 6.0, blend=(0.5, 0.5))
     exact = render_view(dual, c2w, k, 10, 8, 0.1, 6.0, blend=(0.5, 0.5), termination_eps=0.0)
     assert float((fused - exact).abs().max()) <= RENDER_TERMINATION_EPS + 1e-6
+
+
+def test_per_ray_direction_features_give_the_per_sample_result_bit_for_bit():
+    """The renderer computes SH once per ray and gathers them per sample: equal to SH per sample."""
+    field = dense_field()
+    dual = make_edit_model(field, "dual")
+    with torch.no_grad():
+        for p in dual.dynamic_field.parameters():
+            p.add_(torch.randn(p.shape, generator=torch.Generator().manual_seed(2)))
+    g = torch.Generator().manual_seed(1)
+    o, d = rays(50)
+    ray_id = torch.randint(50, (300,), generator=g)
+    x = torch.rand(300, 3, generator=g) * 2 - 1
+    gathered = field.direction_features(d)[ray_id]
+    for model, blend in ((field, None), (dual, (0.3, 0.7))):
+        a = model.query(x, d[ray_id], blend=blend)
+        b = model.query(x, None, blend=blend, dir_features=gathered)
+        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+        assert torch.equal(model.query_background(d, blend=blend),
+                           model.query_background(d, blend=blend, dir_features=field.direction_features(d)))
