@@ -55,7 +55,7 @@ def _evaluated_samples(model, dataset, view, blend) -> int:
     """Field samples one render evaluates (occupied interval midpoints), counted with the same sampler."""
     import torch
 
-    import dualnerf.rendering as rendering
+    from dualnerf import rendering
     from dualnerf.cameras import view_rays
 
     origins, dirs = view_rays(dataset.c2w[view], dataset.intrinsics[view], dataset.width, dataset.height)

@@ -92,8 +92,7 @@ def _fitted_field(args, tmp: Path):
 
 
 def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Path) -> dict:
-    import dualnerf.rendering as rendering
-    import dualnerf.training as training
+    from dualnerf import rendering, training
     from dualnerf.idu import IDUConfig, IterativeDatasetUpdate
     from dualnerf.scenes import load_scene_spec
     from stages.edit import EditParams, _build_editor, _build_encoder
@@ -191,11 +190,20 @@ def _print(result) -> None:
             unit = f"{1000 * seconds:.0f} ms"
         share = seconds / result["total"] if not name.startswith("checkpoint") else float("nan")
         print(f"  {name:48s} {seconds:8.2f} {share:6.1%} {unit:>12s}")
+    per = {}
     for part in ("step", "update"):
         part_total = sum(s for n, s in timer.seconds.items() if n.startswith(part))
-        per = part_total / (n_it if part == "step" else n_up)
+        per[part] = part_total / (n_it if part == "step" else n_up)
         print(f"  {part + ' total':48s} {part_total:8.2f} {part_total / result['total']:6.1%} "
-              f"{1000 * per:9.0f} ms/{'it' if part == 'step' else 'upd'}")
+              f"{1000 * per[part]:9.0f} ms/{'it' if part == 'step' else 'upd'}")
+    from stages.edit import EditParams
+
+    preset = EditParams()
+    n_updates = preset.iterations // preset.edit_rate * preset.edit_count
+    estimate = preset.iterations * per["step"] + n_updates * per["update"]
+    print(f"  estimated edit stage at the CPU preset ({preset.iterations} iterations, {n_updates} updates): "
+          f"{estimate / 60:.1f} min (+ probes and checkpoints)")
+    result["estimate"] = estimate
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -234,6 +242,7 @@ def main(argv: list[str] | None = None) -> None:
                    _profile_variant("baseline (single field)", False, args, data_dir, static, dataset, tmp)]
         for result in results:
             _print(result)
+            print(flush=True)
         print(f"\ndual / single loop time: {results[0]['total'] / results[1]['total']:.2f}")
 
 

@@ -74,7 +74,7 @@ def test_per_ray_direction_features_give_the_per_sample_result_bit_for_bit():
         for p in dual.dynamic_field.parameters():
             p.add_(torch.randn(p.shape, generator=torch.Generator().manual_seed(2)))
     g = torch.Generator().manual_seed(1)
-    o, d = rays(50)
+    _, d = rays(50)
     ray_id = torch.randint(50, (300,), generator=g)
     x = torch.rand(300, 3, generator=g) * 2 - 1
     gathered = field.direction_features(d)[ray_id]
