@@ -44,14 +44,15 @@ def matmul_flops(threads: int, size: int = 1024, repeats: int = 5) -> float:
     return 2.0 * size ** 3 / statistics.median(times)
 
 
-def _render(model, dataset, view, blend):
+def _render(model, dataset, view, blend, termination_eps):
     from dualnerf.rendering import render_view
 
     return render_view(model, dataset.c2w[view], dataset.intrinsics[view], dataset.width, dataset.height,
-                       float(dataset.near[view]), float(dataset.far[view]), blend=blend)
+                       float(dataset.near[view]), float(dataset.far[view]), blend=blend,
+                       termination_eps=termination_eps)
 
 
-def _evaluated_samples(model, dataset, view, blend) -> int:
+def _evaluated_samples(model, dataset, view, blend, termination_eps) -> int:
     """Field samples one render evaluates (occupied interval midpoints), counted with the same sampler."""
     import torch
 
@@ -64,7 +65,8 @@ def _evaluated_samples(model, dataset, view, blend) -> int:
         for s in range(0, origins.shape[0], 8192):
             total += rendering.render_rays(model, origins[s:s + 8192], dirs[s:s + 8192], float(dataset.near[view]),
                                            float(dataset.far[view]), blend=blend,
-                                           samples_per_ray=model.config.render_samples_per_ray)["evaluated"]
+                                           samples_per_ray=model.config.render_samples_per_ray,
+                                           termination_eps=termination_eps)["evaluated"]
     return total
 
 
@@ -78,6 +80,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--render-samples", type=int, default=48)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--reference", action="store_true",
+                        help="also time the reference renders without early ray termination")
     args = parser.parse_args([] if argv is None else argv)
 
     import torch
@@ -109,21 +113,27 @@ def main(argv: list[str] | None = None) -> None:
           f"{per_sample:.0f} FLOPs per field sample")
     header = ("model", "s/render", "renders/s", "samples", "samples/s", "limit s", "ratio")
     print("  ".join(f"{h:>12s}" for h in header))
-    for label, model, blend, n_fields in (("f_S", static, None, 1), ("dual field", dual, (0.1, 0.1), 2)):
-        _render(model, dataset, view, blend)                                    # warm-up
+    from dualnerf.rendering import RENDER_TERMINATION_EPS
+
+    cases = [("f_S", static, None, 1, RENDER_TERMINATION_EPS), ("dual field", dual, (0.1, 0.1), 2,
+                                                                 RENDER_TERMINATION_EPS)]
+    if args.reference:
+        cases += [("f_S exact", static, None, 1, 0.0), ("dual exact", dual, (0.1, 0.1), 2, 0.0)]
+    for label, model, blend, n_fields, eps in cases:
+        _render(model, dataset, view, blend, eps)                               # warm-up
         times = []
         for _ in range(args.repeats):
             start = time.perf_counter()
-            _render(model, dataset, view, blend)
+            _render(model, dataset, view, blend, eps)
             times.append(time.perf_counter() - start)
         seconds = statistics.median(times)
-        samples = _evaluated_samples(model, dataset, view, blend)
+        samples = _evaluated_samples(model, dataset, view, blend, eps)
         limit = n_fields * per_sample * samples / flops
         row = (label, f"{seconds:.3f}", f"{1 / seconds:.2f}", f"{samples / 1e6:.2f}M",
                f"{n_fields * samples / seconds / 1e6:.2f}M", f"{limit:.3f}", f"{seconds / limit:.1f}")
         print("  ".join(f"{c:>12s}" for c in row), flush=True)
-    print("samples/s counts field evaluations (two per sample for the dual field); target: dual-field render "
-          "<= 1 s")
+    print("samples/s counts field evaluations (two per sample for the dual field); 'exact': no early ray "
+          "termination (termination_eps=0); target: dual-field render <= 1 s")
 
 
 if __name__ == "__main__":

@@ -78,7 +78,7 @@ class EditParams:
 
 class EditStage(Stage):
     name = "edit"
-    version = "1"
+    version = "2"          # 2: CPU preset 1500 x 1 view every 10; convergence probe in curves.json
     Params = EditParams
     upstream = ("dataset", "fit")
     resources = Resources(cpus=2, gpus=0, memory_gb=3)

@@ -84,3 +84,16 @@ def test_per_ray_direction_features_give_the_per_sample_result_bit_for_bit():
         assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
         assert torch.equal(model.query_background(d, blend=blend),
                            model.query_background(d, blend=blend, dir_features=field.direction_features(d)))
+
+
+@pytest.mark.parametrize("resolution", [8, 64, 300])
+def test_cell_index_equals_the_integer_formula(resolution):
+    from dualnerf.occupancy import OccupancyGrid
+
+    g = torch.Generator().manual_seed(resolution)
+    x = torch.rand(20000, 3, generator=g) * 2.4 - 1.2            # inside and outside the cube
+    x[:8] = torch.tensor([-1.0, 1.0, 0.0])                       # exact borders
+    ijk = ((x + 1.0) * (0.5 * resolution)).floor().long().clamp(0, resolution - 1)
+    expected = (ijk[:, 0] * resolution + ijk[:, 1]) * resolution + ijk[:, 2]
+    index = OccupancyGrid(resolution).cell_index(x)
+    assert index.dtype == torch.long and torch.equal(index, expected)
