@@ -47,6 +47,7 @@ from dualnerf.rendering import render_view
 from dualnerf.training import RayTrainer, TrainConfig
 
 STATE_FORMAT_VERSION = 1
+_STATIC_PREFIX = "static_field."       # a DualField's f_S entries in its state dict
 
 
 class IDUConfigError(ValueError):
@@ -290,7 +291,12 @@ class IterativeDatasetUpdate:
     # ---- checkpoint state ----------------------------------------------------------------------
     def save_state(self, folder: Path) -> None:
         folder = Path(folder)
-        tensors = {"trainer": self.trainer.state_dict(), "images": torch.from_numpy(self.images.copy())}
+        trainer_state = self.trainer.state_dict()
+        # f_S is frozen and rebuilt from the fit result on resume: leave its tensors (a quarter of a
+        # dual-field state with Adam's moments) out of every checkpoint.
+        trainer_state["model"] = {k: v for k, v in trainer_state["model"].items()
+                                  if not k.startswith(_STATIC_PREFIX)}
+        tensors = {"trainer": trainer_state, "images": torch.from_numpy(self.images.copy())}
         if self.scores is not None:
             tensors["scores"] = torch.from_numpy(self.scores.scores.copy())
         torch.save(tensors, folder / "state.pt")
@@ -307,7 +313,10 @@ class IterativeDatasetUpdate:
             raise IDUConfigError(f"{folder} is a checkpoint of a different edit configuration or format; "
                                  f"delete it to start over.")
         tensors = torch.load(folder / "state.pt", map_location="cpu", weights_only=True)
-        self.trainer.load_state_dict(tensors["trainer"])
+        trainer_state = tensors["trainer"]
+        trainer_state["model"] = {**{k: v for k, v in self.trainer.model.state_dict().items()
+                                     if k.startswith(_STATIC_PREFIX)}, **trainer_state["model"]}
+        self.trainer.load_state_dict(trainer_state)
         self.images = tensors["images"].numpy().copy()
         self.trainer.images = torch.from_numpy(self.images).to(self.device).float() / 255.0
         if self.scores is not None and "scores" in tensors:

@@ -12,19 +12,26 @@ Outputs:
                          editor details (the emulator's noise level, failure flag, ...)
     curves.json          per iteration: loss, psnr, blend_density, blend_color, temperature,
                          cci_weight_min/max; per update: the same fields as updates.jsonl (columns);
-                         acceptance_rate; cci: per update the scores and weights of every training view
+                         acceptance_rate; cci: per update the scores and weights of every training view;
+                         convergence: iteration, psnr_in, psnr_out, views, scale (None without ground truth)
     curves.png           the curves plotted
     edit.json            toggles, instruction, CCI text, editor and encoder identity (simulator flags)
 
 Presets. The paper (GPU, ~512 px images): iterations=15000, edit_rate=10, edit_count=1,
-rays_per_batch=4096 (PAPER_PRESET; workflows can set these). The defaults below are a scaled CPU
-preset for the campsite ablation (6 edit variants + evaluation in ~25 min on 2 cores): 200 iterations
-with 2 views updated every 10 iterations (40 view updates: every training view of tiny ~1.8 times, of
-campsite ~1 time) and 1024 rays per batch. Measured on tiny at 128x96 with 96 samples per ray (2 shared,
-loaded cores): 0.5-0.7 s per training iteration and 2-4 s per view update (render + emulator + proxy
-encoder), i.e. 3-5 min per variant; both costs scale with pixels x samples per ray, so the ablation
-should preprocess at ~128 px and fit with <= 96 samples per ray. The blend schedule keeps the paper's
-lambda = 0.005, so the blend weights reach tanh(1) = 0.76 w_max by iteration 200.
+rays_per_batch=4096 (PAPER_PRESET; workflows can set these). The defaults below are the converging CPU
+preset (issue 11): 1500 iterations at Instruct-NeRF2NeRF's rate of one view every 10 iterations (150
+view updates: each of campsite's 42 training views ~3.6 times) and 1024 rays per batch; with the
+paper's lambda = 0.005 the blend weights reach 0.995 w_max by iteration 600. Cost (benchmarks.profile_edit
+on campsite with a 600-iteration f_S, 2 cores shared under load ~10: absolute times inflated, ratios hold): a
+single-field iteration 4.3 s, a dual-field one 5.9 s (1.38x: f_D's forward + backward as in the single
+field, plus f_S's frozen forward); a view update 32 s single / 52 s dual, almost all of it the render's
+field forwards and proposal (editor ~35 ms, proxy encoder ~20 ms). Unloaded, from the earlier 200-iteration
+measurements, that is ~15 min per single-field row and ~22 min per dual-field row at this preset: the
+6-row ablation does not fit 30 min yet (see README "Presets"). The smoke workflow keeps 200 x 2 views.
+
+Convergence (procedural scenes with gt/edits/): every `convergence_every` iterations the stage renders
+`convergence_views` training views at `convergence_scale` resolution and records PSNR to the ground-truth
+edit inside its mask and to the original outside it (curves.json "convergence"; dualnerf.convergence).
 """
 from __future__ import annotations
 
@@ -70,7 +77,7 @@ class EditParams:
     seed: int = 0
     device: str = "cpu"
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
-    checkpoint_every_rounds: int = 5    # non-semantic: resume is exact from any round
+    checkpoint_every_rounds: int = 10   # non-semantic: resume is exact from any round
     convergence_every: int = 100        # probe PSNR to the ground-truth edit every N iterations (0: off)
     convergence_views: int = 3          # training views probed (procedural scenes with gt/edits/ only)
     convergence_scale: float = 0.5      # probe render resolution relative to the dataset's
