@@ -70,3 +70,24 @@ def test_late_change_share():
     assert late_change_share(it, [10, 15, 18, 19, 19.5, 19.8, 19.9, 20, 20, 20, 20]) == pytest.approx(0.0)
     assert late_change_share(it, [10 + i for i in range(11)]) == pytest.approx(0.1)
     assert late_change_share(it, [10] * 11) is None
+
+
+def test_report_draws_one_convergence_panel_per_row_with_probe_data(tmp_path):
+    import json
+
+    from stages.report import ReportRow
+    from stages.report_convergence import write_convergence
+
+    rows = []
+    for k, label in enumerate(("baseline", "DF+SA+CCI", "Original")):
+        edit_dir = tmp_path / f"edit{k}"
+        edit_dir.mkdir()
+        conv = None if label == "Original" else {"iteration": [0, 100, 200], "psnr_in": [12.0, 18.0, 19.0],
+                                                 "psnr_out": [30.0, 29.5, 29.4], "views": [1, 2], "scale": 0.5}
+        (edit_dir / "curves.json").write_text(json.dumps({"iteration": [], "convergence": conv}))
+        rows.append(ReportRow(label, True, True, True, 0, tmp_path, edit_dir))
+
+    (tmp_path / "out").mkdir(exist_ok=True)
+    assert write_convergence(rows, tmp_path / "out") == ["curves/convergence.png"]
+    assert (tmp_path / "out" / "curves" / "convergence.png").stat().st_size > 1000
+    assert write_convergence(rows[2:], tmp_path / "out") == []
