@@ -1,4 +1,4 @@
-"""Run every `benchmarks/bench_*.py` module's `main()` in turn."""
+"""Run every `benchmarks/bench_*.py` and `benchmarks/profile_*.py` module's `main()` in turn."""
 from __future__ import annotations
 
 import importlib
@@ -8,7 +8,8 @@ from pathlib import Path
 
 
 def main() -> int:
-    names = sorted(m.name for m in pkgutil.iter_modules([str(Path(__file__).parent)]) if m.name.startswith("bench_"))
+    names = sorted(m.name for m in pkgutil.iter_modules([str(Path(__file__).parent)])
+                   if m.name.startswith(("bench_", "profile_")))
     for name in names:
         print(f"\n=== benchmarks.{name} ===", flush=True)
         importlib.import_module(f"benchmarks.{name}").main()

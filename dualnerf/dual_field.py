@@ -101,13 +101,15 @@ class DualField(nn.Module):
                                                        dynamic_field.occupancy.density.to(self.occupancy.density.device)))
         self.render_blend: tuple[float, float] | None = None
 
-    def query(self, x, d, blend=None, retreat: float = 1.0):
+    def query(self, x, d, blend=None, retreat: float = 1.0, dir_features=None):
+        if dir_features is None:          # one SH evaluation for both fields (equal configs)
+            dir_features = self.static_field.direction_features(d)
         with torch.no_grad():
-            h_sigma_s, h_color_s = self.static_field(x, d)
+            h_sigma_s, h_color_s = self.static_field(x, d, dir_features)
         if blend is None:
             return h_sigma_s, h_color_s
         w_density, w_color = _effective_blend(blend, retreat)
-        h_sigma_d, h_color_d = self.dynamic_field(x, d)
+        h_sigma_d, h_color_d = self.dynamic_field(x, d, dir_features)
         return _fuse(h_sigma_s, h_sigma_d, w_density), _fuse(h_color_s, h_color_d, w_color)
 
     def query_density(self, x, blend=None, retreat: float = 1.0):
@@ -118,13 +120,15 @@ class DualField(nn.Module):
         w_density, _ = _effective_blend(blend, retreat)
         return _fuse(h_sigma_s, self.dynamic_field.density_hidden(x), w_density)
 
-    def query_background(self, d, blend=None, retreat: float = 1.0):
+    def query_background(self, d, blend=None, retreat: float = 1.0, dir_features=None):
+        if dir_features is None:
+            dir_features = self.static_field.direction_features(d)
         with torch.no_grad():
-            h_bg_s = self.static_field.background_hidden(d)
+            h_bg_s = self.static_field.background_hidden(d, dir_features)
         if blend is None:
             return h_bg_s
         _, w_color = _effective_blend(blend, retreat)
-        return _fuse(h_bg_s, self.dynamic_field.background_hidden(d), w_color)
+        return _fuse(h_bg_s, self.dynamic_field.background_hidden(d, dir_features), w_color)
 
     def occupancy_for(self, blend=None) -> OccupancyGrid:
         return self.static_field.occupancy if blend is None else self.occupancy

@@ -3,9 +3,10 @@
 API:
     FieldConfig(...)                      frozen dataclass; `to_dict()` / `FieldConfig.from_dict(d)`
     RadianceField(config, generator=None) nn.Module
-        forward(x: (M,3) in [-1,1]^3, d: (M,3) unit) -> (h_sigma: (M,), h_color: (M,3))
-        background_hidden(d: (R,3) unit) -> (R,3)   pre-sigmoid background colour (see below)
-        query(x, d, blend=None, retreat=1.0)      same as forward; rejects a blend (single field)
+        forward(x: (M,3) in [-1,1]^3, d: (M,3) unit, dir_features=None) -> (h_sigma: (M,), h_color: (M,3))
+        direction_features(d) -> (M, direction_degree**2)   SH of d; pass as dir_features to skip recomputing
+        background_hidden(d: (R,3) unit, dir_features=None) -> (R,3)   pre-sigmoid background colour (below)
+        query(x, d, blend=None, retreat=1.0, dir_features=None)   same as forward; rejects a blend
         occupancy: OccupancyGrid                  empty-space skipping state, saved with the model
     decode_density(h_sigma) -> sigma >= 0        D_sigma: truncated exponential
     decode_color(h_color) -> rgb in (0,1)        D_c: sigmoid
@@ -179,35 +180,44 @@ class RadianceField(nn.Module):
             return self.encoding(x)
         return torch.cat([e(x) for e in encodings], dim=-1)
 
-    def forward(self, x: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def direction_features(self, d: torch.Tensor) -> torch.Tensor:
+        """The view direction's SH features (M, degree**2) that forward / background_hidden consume."""
+        return spherical_harmonics(d, self.config.direction_degree)
+
+    def forward(self, x: torch.Tensor, d: torch.Tensor | None,
+                dir_features: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """`dir_features` (M, degree**2): direction_features(d) computed by the caller (a renderer computes
+        them once per ray, not per sample, and shares them between the fields of a DualField); then d is
+        not used. The result is the same either way (element-wise maths)."""
         out = self.density_mlp(self.features(x))
         h_sigma, geo = out[:, 0], out[:, 1:]
-        h_color = self.color_mlp(torch.cat([geo, spherical_harmonics(d, self.config.direction_degree)], dim=-1))
+        sh = self.direction_features(d) if dir_features is None else dir_features
+        h_color = self.color_mlp(torch.cat([geo, sh], dim=-1))
         return h_sigma, h_color
 
     def density_hidden(self, x: torch.Tensor) -> torch.Tensor:
         """h_sigma only (no colour branch): used by the occupancy-grid update."""
         return self.density_mlp(self.features(x))[:, 0]
 
-    def background_hidden(self, d: torch.Tensor) -> torch.Tensor:
+    def background_hidden(self, d: torch.Tensor, dir_features: torch.Tensor | None = None) -> torch.Tensor:
         if self.background_head is not None:
-            return self.background_head(spherical_harmonics(d, self.config.direction_degree))
+            return self.background_head(self.direction_features(d) if dir_features is None else dir_features)
         # A large pre-sigmoid logit decodes to (almost exactly) 1 or 0 for the constant backgrounds.
         value = 30.0 if self.config.background == "white" else -30.0
         return torch.full((d.shape[0], 3), value, dtype=d.dtype, device=d.device)
 
     # The rendering interface shared with DualField (see dualnerf.rendering).
-    def query(self, x, d, blend=None, retreat: float = 1.0):
+    def query(self, x, d, blend=None, retreat: float = 1.0, dir_features=None):
         _reject_blend(blend)
-        return self(x, d)
+        return self(x, d, dir_features)
 
     def query_density(self, x, blend=None, retreat: float = 1.0):
         _reject_blend(blend)
         return self.density_hidden(x)
 
-    def query_background(self, d, blend=None, retreat: float = 1.0):
+    def query_background(self, d, blend=None, retreat: float = 1.0, dir_features=None):
         _reject_blend(blend)
-        return self.background_hidden(d)
+        return self.background_hidden(d, dir_features)
 
     def occupancy_for(self, blend=None) -> OccupancyGrid:
         _reject_blend(blend)

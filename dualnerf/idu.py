@@ -49,6 +49,7 @@ from dualnerf.rendering import render_view
 from dualnerf.training import RayTrainer, TrainConfig
 
 STATE_FORMAT_VERSION = 1
+_STATIC_PREFIX = "static_field."       # a DualField's f_S entries in its state dict
 
 
 class IDUConfigError(ValueError):
@@ -103,7 +104,7 @@ class IterativeDatasetUpdate:
     """The editing loop's state and steps. Build, optionally `load_state`, then `run`."""
 
     def __init__(self, config: IDUConfig, static_field, dataset, editor, instruction: str, *,
-                 encoder=None, cci_text: str | None = None, device: str = "cpu"):
+                 encoder=None, cci_text: str | None = None, device: str = "cpu", probe=None):
         if config.consistency and encoder is None:
             raise IDUConfigError("consistency (CCI) is on but no image-text encoder was given; set encoder "
                                  "'proxy' or 'clip', or turn consistency off.")
@@ -153,6 +154,10 @@ class IterativeDatasetUpdate:
                                         "blend_color": [], "temperature": [], "cci_weight_min": [],
                                         "cci_weight_max": []}
         self.cci_history: list[dict] = []
+        # Optional dualnerf.convergence.ConvergenceProbe: PSNR of a few training-view renders to the
+        # ground-truth edit at regular iterations (deterministic renders: probing does not change the run).
+        self.probe = probe
+        self.convergence: list[dict] = []
 
     # ---- the loop ------------------------------------------------------------------------------
     def blend_at(self, iteration: int):
@@ -239,6 +244,7 @@ class IterativeDatasetUpdate:
         end = cfg.iterations if until is None else min(until, cfg.iterations)
         while self.iteration < end:
             t = self.iteration
+            self._probe(t)
             if t % cfg.edit_rate == 0:
                 self.dataset_update(t)
             metrics = self.train_step(t)
@@ -247,6 +253,19 @@ class IterativeDatasetUpdate:
                 progress(1, loss=float(metrics["loss"]), psnr=float(metrics["psnr"]))
             if on_round_end is not None and self.iteration % cfg.edit_rate == 0 and self.iteration < cfg.iterations:
                 on_round_end(self.iteration)
+        if self.iteration == cfg.iterations:
+            self._probe(self.iteration)
+
+    def _probe(self, iteration: int) -> None:
+        """Record the convergence probe's PSNRs of the model after `iteration` training iterations."""
+        last = self.config.iterations
+        if self.probe is None or not self.probe.due(iteration, last):
+            return
+        if self.convergence and self.convergence[-1]["iteration"] >= iteration:
+            return
+        model = self.model
+        blend = self.blend_at(min(iteration, last - 1))
+        self.convergence.append(self.probe.measure(model, blend, iteration))
 
     # ---- results -------------------------------------------------------------------------------
     def final_model(self):
@@ -263,19 +282,35 @@ class IterativeDatasetUpdate:
                                         "temperature", "render_retreat", "score", "weight")},
                 "acceptance_rate": (sum(bool(u["accepted"]) for u in acc) / len(acc)) if acc else None,
                 "cci": self.cci_history, "train_views": self.train_views,
+                "convergence": self.convergence_json(),
                 "toggles": {"dual_field": self.config.dual_field, "annealing": self.config.annealing,
                             "consistency": self.config.consistency}}
+
+    def convergence_json(self) -> dict | None:
+        """The probe's columns: iteration, psnr_in (to the ground-truth edit inside its mask), psnr_out (to the
+        original outside it), and the probed views; None without a probe."""
+        if self.probe is None:
+            return None
+        return {"iteration": [c["iteration"] for c in self.convergence],
+                "psnr_in": [c["psnr_in"] for c in self.convergence],
+                "psnr_out": [c["psnr_out"] for c in self.convergence],
+                "views": self.probe.views, "scale": 1.0 / self.probe.factor}
 
     # ---- checkpoint state ----------------------------------------------------------------------
     def save_state(self, folder: Path) -> None:
         folder = Path(folder)
-        tensors = {"trainer": self.trainer.state_dict(), "images": torch.from_numpy(self.images.copy())}
+        trainer_state = self.trainer.state_dict()
+        # f_S is frozen and rebuilt from the fit result on resume: leave its tensors (a quarter of a
+        # dual-field state with Adam's moments) out of every checkpoint.
+        trainer_state["model"] = {k: v for k, v in trainer_state["model"].items()
+                                  if not k.startswith(_STATIC_PREFIX)}
+        tensors = {"trainer": trainer_state, "images": torch.from_numpy(self.images.copy())}
         if self.scores is not None:
             tensors["scores"] = torch.from_numpy(self.scores.scores.copy())
         torch.save(tensors, folder / "state.pt")
         doc = {"version": STATE_FORMAT_VERSION, "iteration": self.iteration, "config": self.config.to_json(),
                "sa_rng": self.sa_rng.bit_generator.state, "updates": self.updates, "curves": self.curves,
-               "cci": self.cci_history}
+               "cci": self.cci_history, "convergence": self.convergence}
         (folder / "state.json").write_text(json.dumps(doc))
 
     def load_state(self, folder: Path) -> None:
@@ -286,7 +321,10 @@ class IterativeDatasetUpdate:
             raise IDUConfigError(f"{folder} is a checkpoint of a different edit configuration or format; "
                                  f"delete it to start over.")
         tensors = torch.load(folder / "state.pt", map_location="cpu", weights_only=True)
-        self.trainer.load_state_dict(tensors["trainer"])
+        trainer_state = tensors["trainer"]
+        trainer_state["model"] = {**{k: v for k, v in self.trainer.model.state_dict().items()
+                                     if k.startswith(_STATIC_PREFIX)}, **trainer_state["model"]}
+        self.trainer.load_state_dict(trainer_state)
         self.images = tensors["images"].numpy().copy()
         self.trainer.images = torch.from_numpy(self.images).to(self.device).float() / 255.0
         if self.scores is not None and "scores" in tensors:
@@ -296,3 +334,4 @@ class IterativeDatasetUpdate:
         self.updates = doc["updates"]
         self.curves = doc["curves"]
         self.cci_history = doc["cci"]
+        self.convergence = doc.get("convergence", [])

@@ -32,8 +32,13 @@ class OccupancyGrid(nn.Module):
     def cell_index(self, x: torch.Tensor) -> torch.Tensor:
         """Flat cell index of points in [-1,1]^3 (points outside are clamped to the border cells)."""
         r = self.resolution
-        ijk = ((x + 1.0) * (0.5 * r)).floor().long().clamp(0, r - 1)
-        return (ijk[..., 0] * r + ijk[..., 1]) * r + ijk[..., 2]
+        # Float arithmetic on whole numbers is exact below 2^24 (r <= 256), and one integer conversion at the
+        # end is ~2x faster than int64 maths on all three coordinates (the proposal does this 256x per ray).
+        ijk = ((x + 1.0) * (0.5 * r)).floor_().clamp_(0, r - 1)
+        if r > 256:
+            ijk = ijk.long()
+            return (ijk[..., 0] * r + ijk[..., 1]) * r + ijk[..., 2]
+        return ((ijk[..., 0] * r + ijk[..., 1]) * r + ijk[..., 2]).long()
 
     def occupied(self, x: torch.Tensor) -> torch.Tensor:
         return self.mask.reshape(-1)[self.cell_index(x)]

@@ -12,24 +12,31 @@ Outputs:
                          editor details (the emulator's noise level, failure flag, ...)
     curves.json          per iteration: loss, psnr, blend_density, blend_color, temperature,
                          cci_weight_min/max; per update: the same fields as updates.jsonl (columns);
-                         acceptance_rate; cci: per update the scores and weights of every training view
+                         acceptance_rate; cci: per update the scores and weights of every training view;
+                         convergence: iteration, psnr_in, psnr_out, views, scale (None without ground truth)
     curves.png           the curves plotted
     edit.json            toggles, instruction, CCI text, editor and encoder identity (simulator flags)
 
 Presets. The paper (GPU, ~512 px images): iterations=15000, edit_rate=10, edit_count=1,
-rays_per_batch=4096 (PAPER_PRESET; workflows can set these). The defaults below are a scaled CPU
-preset for the campsite ablation (6 edit variants + evaluation in ~25 min on 2 cores): 200 iterations
-with 2 views updated every 10 iterations (40 view updates: every training view of tiny ~1.8 times, of
-campsite ~1 time) and 1024 rays per batch. Measured on tiny at 128x96 with 96 samples per ray (2 shared,
-loaded cores): 0.5-0.7 s per training iteration and 2-4 s per view update (render + emulator + proxy
-encoder), i.e. 3-5 min per variant; both costs scale with pixels x samples per ray, so the ablation
-should preprocess at ~128 px and fit with <= 96 samples per ray. The blend schedule keeps the paper's
-lambda = 0.005, so the blend weights reach tanh(1) = 0.76 w_max by iteration 200.
+rays_per_batch=4096 (PAPER_PRESET; workflows can set these). The defaults below are the converging CPU
+preset (issue 11): 1500 iterations at Instruct-NeRF2NeRF's rate of one view every 10 iterations (150
+view updates: each of campsite's 42 training views ~3.6 times) and 1024 rays per batch; with the
+paper's lambda = 0.005 the blend weights reach 0.995 w_max by iteration 600. Cost (benchmarks.profile_edit
+on campsite with a 600-iteration f_S, 2 cores shared under load ~10: absolute times inflated, ratios hold): a
+single-field iteration 4.3 s, a dual-field one 5.9 s (1.38x: f_D's forward + backward as in the single
+field, plus f_S's frozen forward); a view update 32 s single / 52 s dual, almost all of it the render's
+field forwards and proposal (editor ~35 ms, proxy encoder ~20 ms). Unloaded, from the earlier 200-iteration
+measurements, that is ~15 min per single-field row and ~22 min per dual-field row at this preset: the
+6-row ablation does not fit 30 min yet (see README "Presets"). The smoke workflow keeps 200 x 2 views.
 
 Loss: RGB + lpips_weight x LPIPS (AlexNet, v0.1) on 32x32 rendered patches, as the paper (Sec. 4.4) and
 Instruct-NeRF2NeRF; at the CPU preset's 1024 rays the one patch is the whole batch, at the paper's 4096
 half of it (2 patches). LPIPS on one 32x32 patch (forward + backward) is small next to rendering the
 batch; benchmarks/bench_lpips prints the step-time ratio. lpips_weight = 0 restores the RGB-only loss.
+
+Convergence (procedural scenes with gt/edits/): every `convergence_every` iterations the stage renders
+`convergence_views` training views at `convergence_scale` resolution and records PSNR to the ground-truth
+edit inside its mask and to the original outside it (curves.json "convergence"; dualnerf.convergence).
 """
 from __future__ import annotations
 
@@ -62,9 +69,9 @@ class EditParams:
     editor_model: str = ""              # ip2p: local diffusers folder or hub id (default timbrooks/instruct-pix2pix)
     encoder: str = "proxy"              # "proxy" (weight-free, NOT CLIP) or "clip"
     encoder_model: str = ""             # clip: folder from `dualnerf models export-clip`
-    iterations: int = 200               # scaled CPU preset (paper: 15000)
+    iterations: int = 1500              # scaled CPU preset (paper: 15000)
     edit_rate: int = 10                 # iterations between dataset updates (IN2N: 10)
-    edit_count: int = 2                 # views per dataset update (IN2N: 1)
+    edit_count: int = 1                 # views per dataset update (IN2N: 1)
     rays_per_batch: int = 1024          # (paper scale: 4096)
     lr: float = 1e-2                    # f_D's is lr / w_max_color when dual_lr_scale (see dualnerf.idu)
     dual_lr_scale: bool = True
@@ -79,12 +86,15 @@ class EditParams:
     seed: int = 0
     device: str = "cpu"
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
-    checkpoint_every_rounds: int = 5    # non-semantic: resume is exact from any round
+    checkpoint_every_rounds: int = 10   # non-semantic: resume is exact from any round
+    convergence_every: int = 100        # probe PSNR to the ground-truth edit every N iterations (0: off)
+    convergence_views: int = 3          # training views probed (procedural scenes with gt/edits/ only)
+    convergence_scale: float = 0.5      # probe render resolution relative to the dataset's
 
 
 class EditStage(Stage):
     name = "edit"
-    version = "2"           # 2: RGB + LPIPS patch loss by default
+    version = "2"          # 2: RGB + LPIPS patch loss; CPU preset 1500 x 1 view every 10; convergence probe
     Params = EditParams
     upstream = ("dataset", "fit")
     resources = Resources(cpus=2, gpus=0, memory_gb=3)
@@ -124,8 +134,13 @@ class EditStage(Stage):
                            blend=BlendSchedule(p.w_max_density, p.w_max_color, p.blend_rate),
                            annealing_config=AnnealingConfig(p.T0), seed=p.seed, lpips_weight=p.lpips_weight,
                            lpips_net=p.lpips_net, patch_size=p.patch_size, patch_share=p.patch_share)
+        probe = None
+        if p.convergence_every > 0:
+            from dualnerf.convergence import probe_for_scene_edit
+            probe = probe_for_scene_edit(data_dir, dataset, p.edit_id, n_views=p.convergence_views,
+                                         scale=p.convergence_scale, every=p.convergence_every)
         idu = IterativeDatasetUpdate(config, static_field, dataset, editor, instruction, encoder=encoder,
-                                     cci_text=cci_text, device=p.device)
+                                     cci_text=cci_text, device=p.device, probe=probe)
         editor_identity = editor.identity
         encoder_identity = None if encoder is None else encoder.identity
         ctx.record(editor=editor_identity, editor_is_simulator=bool(editor_identity.get("is_simulator")),
@@ -206,6 +221,10 @@ def _check_params(p: EditParams, torch) -> None:
                              f"{p.lpips_net!r} and {p.lpips_weight}.")
     if p.checkpoint_every_rounds < 1:
         raise EditStageError(f"edit: checkpoint_every_rounds must be >= 1, got {p.checkpoint_every_rounds}.")
+    if p.convergence_every < 0 or p.convergence_views < 1 or not 0.0 < p.convergence_scale <= 1.0:
+        raise EditStageError(f"edit: convergence_every must be >= 0 (0: off), convergence_views >= 1 and "
+                             f"convergence_scale in (0, 1]; got {p.convergence_every}, {p.convergence_views}, "
+                             f"{p.convergence_scale}.")
     if p.device.startswith("cuda") and not torch.cuda.is_available():
         raise EditStageError(f"edit: device '{p.device}' was requested but torch sees no CUDA device; "
                              f"use device='cpu'.")

@@ -28,6 +28,7 @@ import numpy as np
 
 from dualnerf.metrics import METRICS, METRICS_FORMAT, METRICS_VERSION, json_value, parse_json_value
 from stages import report_statistics as RS
+from stages.report_convergence import write_convergence
 from stages.statistics import summarize_over_seeds
 
 GRID_VIEWS = 4
@@ -578,7 +579,7 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict, refe
     shown = [i for i, r in enumerate(rows) if (r.scene, r.edit) == scene_edits[0]]   # images: one scene
     grid_labels = write_image_grid([rows[i] for i in shown], [docs[i] for i in shown], out_dir / "grid.png")
     strip_labels = write_path_strip([rows[i] for i in shown], out_dir / "path_strip.png")
-    curves = write_curves(rows, out_dir)
+    curves = write_curves(rows, out_dir) + write_convergence(rows, out_dir)
     videos = []
     for row in rows:
         source = row.evaluate_dir / "path.mp4"

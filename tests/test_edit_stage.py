@@ -62,6 +62,8 @@ def test_stage_outputs_records_and_untouched_inputs(small, tmp_path):
     assert [u["iteration"] for u in updates] == [0, 0, 5, 5, 10, 10, 15, 15]
     curves = json.loads((out / "curves.json").read_text())
     assert len(curves["loss"]) == 20 and len(curves["cci"]) == 4
+    # the convergence probe (default every 100 iterations): at the start and at the end of the run
+    assert curves["convergence"]["iteration"] == [0, 20] and all(curves["convergence"]["psnr_in"])
     assert (out / "curves.png").stat().st_size > 0
     train = dataset.indices("train")
     assert len(list((out / "edited").glob("*.png"))) == len(train)
@@ -82,6 +84,7 @@ def test_stage_outputs_records_and_untouched_inputs(small, tmp_path):
 
 @pytest.mark.parametrize("params, message", [
     ({"editor": "dalle"}, "unknown editor 'dalle'"),
+    ({"convergence_scale": 0.0}, "convergence_views >= 1 and convergence_scale"),
     ({"cci_text": "caption"}, "cci_text must be one of"),
     ({"edit_id": ""}, "no instruction; set"),
     ({"edit_id": "", "instruction": "Make it look like it just snowed"}, "needs edit_id"),

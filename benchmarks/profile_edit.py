@@ -1,0 +1,252 @@
+"""Where an edit stage's time goes: a dual-field and a single-field IDU run, broken down by phase.
+
+    python -m benchmarks.profile_edit [--scene campsite] [--iterations 100] [--fit-iterations 600]
+                                      [--fit-dir DIR] [--threads 2]
+
+Fits f_S once with the fit stage (cached in --fit-dir, default $TMPDIR/dualnerf-profile-edit/<scene>-<N>;
+reuse it with the same arguments), then runs `--iterations` editing iterations of the full DualNeRF
+variant (DF+SA+CCI) and of the single-field baseline with the edit stage's update rate, timing:
+
+    training step   sampling (ray batch, rays, proposal intervals), occupancy-grid refresh, field forward
+                    per field (f_S, f_D / the single field), rest of the render (compositing),
+                    loss + backward, optimiser step
+    view update     proposal, field forward per field, compositing, editor, encoder
+    checkpoint I/O  save_state + load_state of one checkpoint
+
+The timers wrap the library's functions from outside (nothing in dualnerf/ knows about them), so the
+numbers include only a few microseconds of overhead per call. Everything runs on this process's
+threads; timings include whatever else runs on the machine (check `uptime`).
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import tempfile
+import time
+from collections import defaultdict
+from contextlib import contextmanager
+from pathlib import Path
+
+
+class PhaseTimer:
+    """Exclusive wall-clock time per phase: a nested phase's time is not counted in its parent's."""
+
+    def __init__(self):
+        self.seconds = defaultdict(float)
+        self.calls = defaultdict(int)
+        self._stack: list[list] = []
+
+    @contextmanager
+    def phase(self, name: str):
+        start = time.perf_counter()
+        self._stack.append([name, 0.0])
+        try:
+            yield
+        finally:
+            _, inner = self._stack.pop()
+            total = time.perf_counter() - start
+            self.seconds[name] += total - inner
+            self.calls[name] += 1
+            if self._stack:
+                self._stack[-1][1] += total
+
+    def wrap(self, owner, attribute: str, name):
+        """Replace owner.attribute by a timed version; `name` is a string or a function of the context."""
+        original = getattr(owner, attribute)
+
+        def timed(*args, **kwargs):
+            label = name() if callable(name) else name
+            with self.phase(label):
+                return original(*args, **kwargs)
+
+        setattr(owner, attribute, timed)
+        return original
+
+
+def _fitted_field(args, tmp: Path):
+    """The scene's dataset folder and a fitted f_S (from --fit-dir when it holds one)."""
+    from dualnerf.io import PreprocessConfig, preprocess
+    from dualnerf.scenes import generate_scene
+    from pipeline.context import StepContext
+    from stages.fit import FitParams, FitStage
+
+    cache = Path(args.fit_dir or Path(tempfile.gettempdir()) / "dualnerf-profile-edit"
+                 / f"{args.scene}-{args.fit_iterations}")
+    data, fit = cache / "data", cache / "fit"
+    if not (fit / "model" / "model.json").is_file():
+        cache.mkdir(parents=True, exist_ok=True)
+        start = time.perf_counter()
+        generate_scene(args.scene, tmp / "scene", seed=0)
+        preprocess(tmp / "scene", tmp / "data", PreprocessConfig(method="nerfstudio", max_size=args.max_size))
+        params = FitParams(iterations=args.fit_iterations, num_threads=args.threads, eval_every=10**9)
+        ctx = StepContext(key="profile-fit", params=params, inputs={"dataset": tmp / "data"}, out_dir=tmp / "fit",
+                          scratch_dir=tmp / "fit-scratch", log=logging.getLogger("fit"))
+        FitStage().run(ctx)
+        (tmp / "data").rename(data)
+        (tmp / "fit").rename(fit)
+        print(f"fitted f_S ({args.fit_iterations} iterations) in {time.perf_counter() - start:.0f} s -> {cache}")
+    else:
+        print(f"f_S from {cache}")
+    return data, fit / "model"
+
+
+def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Path) -> dict:
+    from dualnerf import rendering, training
+    from dualnerf.idu import IDUConfig, IterativeDatasetUpdate
+    from dualnerf.scenes import load_scene_spec
+    from stages.edit import EditParams, _build_editor, _build_encoder
+
+    params = EditParams(dual_field=dual_field, annealing=dual_field, consistency=dual_field, edit_id="snow",
+                        iterations=args.iterations)
+    spec = load_scene_spec(data_dir).edit("snow")
+    train = dataset.indices("train")
+    editor = _build_editor(params, data_dir, dataset, train, spec.instruction)
+    encoder = _build_encoder(params, data_dir, dataset, spec)
+    config = IDUConfig(dual_field=params.dual_field, annealing=params.annealing, consistency=params.consistency,
+                       iterations=params.iterations, edit_rate=params.edit_rate, edit_count=params.edit_count,
+                       rays_per_batch=params.rays_per_batch, learning_rate=params.lr)
+    idu = IterativeDatasetUpdate(config, static, dataset, editor, spec.instruction, encoder=encoder)
+
+    timer = PhaseTimer()
+    where = ["step"]                                   # "step" or "update": which loop part is running
+    saved = {}
+
+    def field_label(role):
+        return lambda: f"{where[0]}: field forward {role}"
+
+    fields = ([(idu.model.static_field, "f_S"), (idu.model.dynamic_field, "f_D")] if dual_field
+              else [(idu.model, "single field")])
+    if idu.static_field is not idu.model and dual_field is False:
+        fields.append((idu.static_field, "f_S (retreat)"))
+    for module, role in fields:
+        for method in ("forward", "density_hidden", "background_hidden"):
+            timer.wrap(module, method, field_label(role) if method == "forward"
+                       else (lambda r=role, m=method: f"{where[0]}: {m} {r}"))
+    saved["proposal"] = timer.wrap(rendering, "proposal_intervals", lambda: f"{where[0]}: proposal")
+    saved["render_rays"] = timer.wrap(rendering, "render_rays",
+                                      lambda: f"{where[0]}: render rest (compositing, packing)")
+    saved["training_render_rays"] = training.render_rays
+    training.render_rays = rendering.render_rays
+    saved["pixel_rays"] = timer.wrap(training, "pixel_rays", "step: sampling (rays)")
+    timer.wrap(idu.trainer, "sample_batch", "step: sampling (batch)")
+    timer.wrap(idu.trainer, "update_occupancy", "step: occupancy refresh (rest)")
+    timer.wrap(idu.trainer.optimizer, "step", "step: optimiser")
+    timer.wrap(idu.editor, "edit", "update: editor")
+    if encoder is not None:
+        timer.wrap(encoder, "encode_images", "update: encoder")
+    timer.wrap(idu, "train_step", "step: loop rest (loss, logging)")
+    original_update = idu.dataset_update
+
+    def update(t):
+        where[0] = "update"
+        try:
+            with timer.phase("update: loop rest"):
+                original_update(t)
+        finally:
+            where[0] = "step"
+
+    idu.dataset_update = update
+    import torch
+    original_backward = torch.Tensor.backward
+
+    def backward(self, *a, **k):
+        with timer.phase("step: backward"):
+            return original_backward(self, *a, **k)
+
+    torch.Tensor.backward = backward
+    try:
+        start = time.perf_counter()
+        idu.run()
+        total = time.perf_counter() - start
+        with timer.phase("checkpoint: save"):
+            folder = tmp / f"ckpt-{label}"
+            folder.mkdir()
+            idu.save_state(folder)
+        with timer.phase("checkpoint: load"):
+            idu.load_state(folder)
+    finally:
+        torch.Tensor.backward = original_backward
+        rendering.proposal_intervals = saved["proposal"]
+        rendering.render_rays = saved["render_rays"]
+        training.render_rays = saved["training_render_rays"]
+        training.pixel_rays = saved["pixel_rays"]
+    return {"label": label, "total": total, "timer": timer, "updates": len(idu.updates),
+            "iterations": args.iterations}
+
+
+def _print(result) -> None:
+    timer, n_it, n_up = result["timer"], result["iterations"], max(result["updates"], 1)
+    print(f"\n{result['label']}: {n_it} iterations, {result['updates']} view updates, {result['total']:.1f} s "
+          f"loop (per iteration {1000 * result['total'] / n_it:.0f} ms)")
+    print(f"  {'phase':48s} {'total s':>8s} {'share':>6s} {'per unit':>12s}")
+    for name in sorted(timer.seconds, key=lambda n: (n.split(':')[0], -timer.seconds[n])):
+        seconds = timer.seconds[name]
+        if name.startswith("step"):
+            unit = f"{1000 * seconds / n_it:.1f} ms/it"
+        elif name.startswith("update"):
+            unit = f"{1000 * seconds / n_up:.0f} ms/upd"
+        else:
+            unit = f"{1000 * seconds:.0f} ms"
+        share = seconds / result["total"] if not name.startswith("checkpoint") else float("nan")
+        print(f"  {name:48s} {seconds:8.2f} {share:6.1%} {unit:>12s}")
+    per = {}
+    for part in ("step", "update"):
+        part_total = sum(s for n, s in timer.seconds.items() if n.startswith(part))
+        per[part] = part_total / (n_it if part == "step" else n_up)
+        print(f"  {part + ' total':48s} {part_total:8.2f} {part_total / result['total']:6.1%} "
+              f"{1000 * per[part]:9.0f} ms/{'it' if part == 'step' else 'upd'}")
+    from stages.edit import EditParams
+
+    preset = EditParams()
+    n_updates = preset.iterations // preset.edit_rate * preset.edit_count
+    estimate = preset.iterations * per["step"] + n_updates * per["update"]
+    print(f"  estimated edit stage at the CPU preset ({preset.iterations} iterations, {n_updates} updates): "
+          f"{estimate / 60:.1f} min (+ probes and checkpoints)")
+    result["estimate"] = estimate
+
+
+def main(argv: list[str] | None = None) -> None:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.profile_edit")
+    parser.add_argument("--scene", default="campsite")
+    parser.add_argument("--iterations", type=int, default=100, help="editing iterations per variant")
+    parser.add_argument("--fit-iterations", type=int, default=600)
+    parser.add_argument("--fit-dir", default=None, help="cache folder of the fitted f_S (created if empty)")
+    parser.add_argument("--max-size", type=int, default=256)
+    parser.add_argument("--render-samples", type=int, default=48,
+                        help="render_samples_per_ray of f_S (the ablation workflow's value)")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args([] if argv is None else argv)
+
+    import dataclasses
+
+    import torch
+
+    from dualnerf.dataset import load_dataset
+    from dualnerf.model import load_model
+
+    torch.set_num_threads(args.threads)
+    print(f"cores: {os.cpu_count()}, torch threads: {args.threads}, load {os.getloadavg()[0]:.2f}; "
+          "timings include other load")
+    with tempfile.TemporaryDirectory(prefix="profile-edit-") as tmp:
+        tmp = Path(tmp)
+        data_dir, model_dir = _fitted_field(args, tmp)
+        dataset = load_dataset(data_dir)
+        static = load_model(model_dir)
+        static.config = dataclasses.replace(static.config, render_samples_per_ray=args.render_samples)
+        print(f"{args.scene} {dataset.width}x{dataset.height}, {len(dataset.indices('train'))} training views, "
+              f"occupancy {static.occupancy.fraction():.2f}, samples/ray {static.config.samples_per_ray} "
+              f"(render {static.config.render_samples_per_ray})")
+        results = [_profile_variant("DF+SA+CCI (dual field)", True, args, data_dir, static, dataset, tmp),
+                   _profile_variant("baseline (single field)", False, args, data_dir, static, dataset, tmp)]
+        for result in results:
+            _print(result)
+            print(flush=True)
+        print(f"\ndual / single loop time: {results[0]['total'] / results[1]['total']:.2f}")
+
+
+if __name__ == "__main__":
+    import sys
+
+    main(sys.argv[1:])

@@ -1,0 +1,93 @@
+"""The edit stage's convergence probe (dualnerf.convergence) and the report's convergence figure."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dualnerf.cameras import pixel_rays
+from dualnerf.convergence import ConvergenceProbe, downsample, masked_psnr, probe_for_scene_edit
+from stages.report_convergence import late_change_share
+from tests.test_edit_idu import SNOW, make_idu, small  # noqa: F401  (fixture)
+
+
+def test_downsample_is_the_block_mean_and_masked_psnr_the_closed_form():
+    image = np.arange(4 * 6 * 1, dtype=np.float64).reshape(4, 6, 1)
+    small_image = downsample(image, 2)
+    assert small_image.shape == (2, 3, 1)
+    assert small_image[0, 0, 0] == np.mean([0, 1, 6, 7]) and small_image[1, 2, 0] == np.mean([16, 17, 22, 23])
+    a, b = np.zeros((2, 2, 3)), np.full((2, 2, 3), 0.1)
+    mask = np.array([[True, False], [False, False]])
+    b[1, 1] = 0.9                                                       # outside the mask: ignored
+    assert masked_psnr(a, b, mask) == pytest.approx(20.0)              # -10 log10(0.01)
+    assert math.isnan(masked_psnr(a, b, np.zeros((2, 2), bool)))
+
+
+def test_probe_cameras_cast_the_rays_through_the_centres_of_the_full_pixel_blocks():
+    c2w = np.eye(4)[None]
+    k = np.array([[100.0, 90.0, 64.0, 48.0]])
+    image = np.zeros((1, 96, 128, 3), np.uint8)
+    probe = ConvergenceProbe([0], c2w, k, 128, 96, [0.1], [5.0], image, np.zeros((1, 96, 128), bool), image,
+                             scale=0.5)
+    assert (probe.width, probe.height) == (64, 48)
+    c2w_t = torch.as_tensor(c2w, dtype=torch.float32)
+    u_small, v_small = torch.tensor([0.0, 13.0, 63.0]), torch.tensor([0.0, 7.0, 47.0])
+    _, small_dirs = pixel_rays(c2w_t.expand(3, 4, 4), torch.as_tensor(probe.intrinsics[0], dtype=torch.float32)
+                               .expand(3, 4), u_small, v_small)
+    # The centre of the 2x2 block of full pixels (2u, 2u+1) is at full-pixel coordinate 2u + 0.5.
+    _, full_dirs = pixel_rays(c2w_t.expand(3, 4, 4), torch.as_tensor(k, dtype=torch.float32).expand(3, 4),
+                              2 * u_small + 0.5, 2 * v_small + 0.5)
+    torch.testing.assert_close(small_dirs, full_dirs)
+
+
+def test_probing_does_not_change_the_run_and_resumes_exactly(small, tmp_path):  # noqa: F811
+    data_dir, _, dataset, _ = small
+    probe = probe_for_scene_edit(data_dir, dataset, SNOW, n_views=2, scale=0.5, every=10)
+    assert probe is not None and len(probe.views) == 2
+    plain = make_idu(small, iterations=25, edit_rate=5)
+    plain.run()
+    probed = make_idu(small, iterations=25, edit_rate=5)
+    probed.probe = probe
+    probed.run()
+    for (name, a), (_, b) in zip(plain.model.state_dict().items(), probed.model.state_dict().items()):
+        assert torch.equal(a, b), name
+    conv = probed.curves_json()["convergence"]
+    assert conv["iteration"] == [0, 10, 20, 25] and all(np.isfinite(conv["psnr_in"]))
+    assert plain.curves_json()["convergence"] is None
+    first = make_idu(small, iterations=25, edit_rate=5)
+    first.probe = probe
+    first.run(until=15)
+    first.save_state(tmp_path)
+    resumed = make_idu(small, iterations=25, edit_rate=5)
+    resumed.probe = probe
+    resumed.load_state(tmp_path)
+    resumed.run()
+    assert resumed.curves_json()["convergence"] == conv
+
+
+def test_late_change_share():
+    it = list(range(0, 1001, 100))
+    assert late_change_share(it, [10, 15, 18, 19, 19.5, 19.8, 19.9, 20, 20, 20, 20]) == pytest.approx(0.0)
+    assert late_change_share(it, [10 + i for i in range(11)]) == pytest.approx(0.1)
+    assert late_change_share(it, [10] * 11) is None
+
+
+def test_report_draws_one_convergence_panel_per_row_with_probe_data(tmp_path):
+    import json
+
+    from stages.report import ReportRow
+    from stages.report_convergence import write_convergence
+
+    rows = []
+    for k, label in enumerate(("baseline", "DF+SA+CCI", "Original")):
+        edit_dir = tmp_path / f"edit{k}"
+        edit_dir.mkdir()
+        conv = None if label == "Original" else {"iteration": [0, 100, 200], "psnr_in": [12.0, 18.0, 19.0],
+                                                 "psnr_out": [30.0, 29.5, 29.4], "views": [1, 2], "scale": 0.5}
+        (edit_dir / "curves.json").write_text(json.dumps({"iteration": [], "convergence": conv}))
+        rows.append(ReportRow(label, True, True, True, 0, tmp_path, edit_dir))
+
+    (tmp_path / "out").mkdir(exist_ok=True)
+    assert write_convergence(rows, tmp_path / "out") == ["curves/convergence.png"]
+    assert (tmp_path / "out" / "curves" / "convergence.png").stat().st_size > 1000
+    assert write_convergence(rows[2:], tmp_path / "out") == []
