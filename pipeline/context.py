@@ -18,7 +18,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from pipeline.hashing import sha256_file, write_json_atomic
+from pipeline.hashing import file_records, list_files, record_problems, write_json_atomic
 
 KEEP_CHECKPOINTS = 2
 PROGRESS_FILE = "progress.json"
@@ -117,15 +117,9 @@ class StepContext:
             reporter.close()
 
 
-def _files(folder: Path) -> list[str]:
-    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
-                  if p.is_file() and p.name != CHECKSUM_FILE)
-
-
 def write_checksums(folder: Path) -> None:
     """Record the size and sha256 of every file in a finished checkpoint folder."""
-    files = {rel: {"size": (folder / rel).stat().st_size, "sha256": sha256_file(folder / rel)}
-             for rel in _files(folder)}
+    files = file_records(folder, list_files(folder, frozenset({CHECKSUM_FILE})))
     write_json_atomic(folder / CHECKSUM_FILE, {"files": files})
 
 
@@ -137,20 +131,8 @@ def checkpoint_problems(folder: Path) -> list[str]:
         return [f"{CHECKSUM_FILE} is missing (written by an older version, or not by this engine)"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         return [f"{CHECKSUM_FILE} is unreadable ({exc})"]
-    found = []
-    for rel, meta in sorted(expected.items()):
-        path = folder / rel
-        try:
-            size = path.stat().st_size
-        except OSError:
-            found.append(f"{rel}: missing")
-            continue
-        if size != meta["size"]:
-            found.append(f"{rel}: {size} bytes, {meta['size']} when written (truncated or overwritten)")
-        elif sha256_file(path) != meta["sha256"]:
-            found.append(f"{rel}: content changed since it was written (sha256 differs)")
-    found += [f"{rel}: not written with the checkpoint" for rel in _files(folder) if rel not in expected]
-    return found
+    return record_problems(folder, expected, list_files(folder, frozenset({CHECKSUM_FILE})),
+                           unrecorded="not written with the checkpoint")
 
 
 class ProgressReporter:

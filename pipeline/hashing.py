@@ -31,6 +31,42 @@ def sha256_file(path: Path) -> str:
     return digest.hexdigest()
 
 
+def list_files(folder: Path, exclude: frozenset[str] = frozenset()) -> list[str]:
+    """Every file below `folder` as a sorted relative posix path, without the top-level names in `exclude`."""
+    out = []
+    for parent, dirnames, filenames in os.walk(folder):
+        dirnames.sort()
+        for name in filenames:
+            rel = (Path(parent) / name).relative_to(folder).as_posix()
+            if rel not in exclude:
+                out.append(rel)
+    return sorted(out)
+
+
+def file_records(folder: Path, rels: list[str]) -> dict[str, dict]:
+    """{rel: {"size", "sha256"}}: what a manifest or checksum file records of each file."""
+    return {rel: {"size": (folder / rel).stat().st_size, "sha256": sha256_file(folder / rel)} for rel in rels}
+
+
+def record_problems(folder: Path, expected: dict[str, dict], present: list[str], *, full: bool = True,
+                    name=lambda rel: rel, unrecorded: str = "not recorded") -> list[str]:
+    """What is wrong with `folder` against its `file_records`: one "name(rel): what" line for each
+    missing, resized, changed (sha256, only when `full`) or unrecorded (`present` but not expected) file."""
+    found = []
+    for rel, meta in sorted(expected.items()):
+        try:
+            size = (folder / rel).stat().st_size
+        except OSError:
+            found.append(f"{name(rel)}: missing")
+            continue
+        if size != meta["size"]:
+            found.append(f"{name(rel)}: size {size}, {meta['size']} when recorded (truncated or overwritten)")
+        elif full and sha256_file(folder / rel) != meta["sha256"]:
+            found.append(f"{name(rel)}: content changed (sha256 differs from the record)")
+    found += [f"{name(rel)}: {unrecorded}" for rel in present if rel not in expected]
+    return found
+
+
 def write_json_atomic(path: Path, data: object, indent: int | None = 1) -> None:
     """Write JSON to a unique temp name in the same folder, then os.replace: readers see old or new.
     indent=None is ~10x faster (the C encoder only handles one-shot, unindented output)."""

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.errors import UserError
-from pipeline.hashing import ContentHasher, sha256_file, write_json_atomic
+from pipeline.hashing import ContentHasher, file_records, list_files, record_problems, write_json_atomic
 from pipeline.keys import FORMAT_VERSION
 from pipeline.lease import Lease, read_lease
 
@@ -154,23 +154,8 @@ class Store:
         if manifest.get("key") != key or manifest.get("format") != FORMAT_VERSION:
             what = f"key {manifest.get('key')!r}, format {manifest.get('format')!r}"
             return [f"{folder / MANIFEST}: describes {what}"]
-        found = []
-        expected = manifest.get("files", {})
-        for rel, meta in expected.items():
-            path = folder / rel
-            try:
-                size = path.stat().st_size
-            except OSError:
-                found.append(f"{path}: missing")
-                continue
-            if size != meta["size"]:
-                found.append(f"{path}: size {size}, manifest says {meta['size']}")
-            elif full and sha256_file(path) != meta["sha256"]:
-                found.append(f"{path}: content changed (sha256 differs from manifest)")
-        for rel in _list_files(folder):
-            if rel != MANIFEST and rel not in expected:
-                found.append(f"{folder / rel}: not listed in the manifest")
-        return found
+        return record_problems(folder, manifest.get("files", {}), list_files(folder, frozenset({MANIFEST})),
+                               full=full, name=lambda rel: str(folder / rel), unrecorded="not listed in the manifest")
 
     def lookup(self, key: str, full: bool = True) -> Path | None:
         """The published folder for `key` if present and intact; a damaged entry is reported,
@@ -199,10 +184,7 @@ class Store:
         if (tmp / MANIFEST).exists():
             raise StoreError(f"the stage wrote '{MANIFEST}' into its output folder; that name is "
                              f"reserved for the store. Rename the output file.")
-        files = {}
-        for rel in _list_files(tmp):
-            path = tmp / rel
-            files[rel] = {"size": path.stat().st_size, "sha256": sha256_file(path)}
+        files = file_records(tmp, list_files(tmp))
         manifest = dict(manifest, key=key, format=FORMAT_VERSION, files=files)
         _write_manifest(tmp, manifest)
         final = self.object_path(key)
@@ -329,10 +311,3 @@ class Store:
         return report
 
 
-def _list_files(folder: Path) -> list[str]:
-    out = []
-    for parent, dirnames, filenames in os.walk(folder):
-        dirnames.sort()
-        for name in filenames:
-            out.append((Path(parent) / name).relative_to(folder).as_posix())
-    return sorted(out)
