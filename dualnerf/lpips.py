@@ -26,7 +26,6 @@ none of which is needed). Neither package is imported: only its files are locate
 from __future__ import annotations
 
 import functools
-import hashlib
 import importlib.util
 import pickle
 from pathlib import Path
@@ -35,6 +34,8 @@ import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
+
+from dualnerf.file_hash import file_sha256
 
 NETS = ("alex", "vgg")
 LPIPS_VERSION = "0.1"
@@ -242,23 +243,15 @@ class LPIPS(nn.Module):
         return total
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 @functools.lru_cache(maxsize=4)
 def _load_cpu(net: str) -> LPIPS:
     backbone_path, linear_path = weight_files(net)
     convs = _backbone_kernels(load_array_pickle(backbone_path), net, backbone_path)
     identity = {"net": net, "version": LPIPS_VERSION,
                 "backbone_weights": f"{BACKBONE_PACKAGE[1]}:weights/{_BACKBONE_FILE[net]}",
-                "backbone_sha256": _sha256(backbone_path),
+                "backbone_sha256": file_sha256(backbone_path),
                 "linear_weights": f"{LINEAR_PACKAGE[1]}:weights/v{LPIPS_VERSION}/{net}.pth",
-                "linear_sha256": _sha256(linear_path)}
+                "linear_sha256": file_sha256(linear_path)}
     model = LPIPS(convs, _linear_weights(linear_path, net), net, identity)
     return model.eval().requires_grad_(False)
 

@@ -10,26 +10,18 @@ Every file's sha256 is checked against the manifest on load, so a truncated or s
 """
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
 import numpy as np
 
 from dualnerf.encoders.base import EncoderError, images_to_float, l2_normalise
+from dualnerf.file_hash import file_sha256
 
 CLIP_FORMAT = "dualnerf-clip-onnx"
 CLIP_FORMAT_VERSION = 1
 IMAGE_ONNX, TEXT_ONNX = "image_encoder.onnx", "text_encoder.onnx"
 TOKENIZER_FILE, PREPROCESS_FILE, MANIFEST_FILE = "tokenizer.json", "preprocess.json", "manifest.json"
-
-
-def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for chunk in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def read_verified_manifest(folder: Path) -> dict:
