@@ -9,7 +9,7 @@ variant (DF+SA+CCI) and of the single-field baseline with the edit stage's updat
 
     training step   sampling (ray batch, rays, proposal intervals), occupancy-grid refresh, field forward
                     per field (f_S, f_D / the single field), rest of the render (compositing),
-                    loss + backward, optimiser step
+                    LPIPS patch loss forward, loss + backward (LPIPS's included), optimiser step
     view update     proposal, field forward per field, compositing, editor, encoder
     checkpoint I/O  save_state + load_state of one checkpoint
 
@@ -92,10 +92,10 @@ def _fitted_field(args, tmp: Path):
 
 
 def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Path) -> dict:
-    from dualnerf import rendering, training
-    from dualnerf.idu import IDUConfig, IterativeDatasetUpdate
+    from dualnerf import patches, rendering, training
+    from dualnerf.idu import IterativeDatasetUpdate
     from dualnerf.scenes import load_scene_spec
-    from stages.edit import EditParams, _build_editor, _build_encoder
+    from stages.edit import EditParams, _build_editor, _build_encoder, idu_config
 
     params = EditParams(dual_field=dual_field, annealing=dual_field, consistency=dual_field, edit_id="snow",
                         iterations=args.iterations)
@@ -103,9 +103,7 @@ def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Pa
     train = dataset.indices("train")
     editor = _build_editor(params, data_dir, dataset, train, spec.instruction)
     encoder = _build_encoder(params, data_dir, dataset, spec)
-    config = IDUConfig(dual_field=params.dual_field, annealing=params.annealing, consistency=params.consistency,
-                       iterations=params.iterations, edit_rate=params.edit_rate, edit_count=params.edit_count,
-                       rays_per_batch=params.rays_per_batch, learning_rate=params.lr)
+    config = idu_config(params)           # the stage's own settings (RGB + LPIPS patch loss, blend schedule)
     idu = IterativeDatasetUpdate(config, static, dataset, editor, spec.instruction, encoder=encoder)
 
     timer = PhaseTimer()
@@ -129,6 +127,7 @@ def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Pa
     saved["training_render_rays"] = training.render_rays
     training.render_rays = rendering.render_rays
     saved["pixel_rays"] = timer.wrap(training, "pixel_rays", "step: sampling (rays)")
+    saved["patch_lpips_loss"] = timer.wrap(patches, "patch_lpips_loss", "step: LPIPS loss forward")
     timer.wrap(idu.trainer, "sample_batch", "step: sampling (batch)")
     timer.wrap(idu.trainer, "update_occupancy", "step: occupancy refresh (rest)")
     timer.wrap(idu.trainer.optimizer, "step", "step: optimiser")
@@ -171,6 +170,7 @@ def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Pa
         rendering.render_rays = saved["render_rays"]
         training.render_rays = saved["training_render_rays"]
         training.pixel_rays = saved["pixel_rays"]
+        patches.patch_lpips_loss = saved["patch_lpips_loss"]
     return {"label": label, "total": total, "timer": timer, "updates": len(idu.updates),
             "iterations": args.iterations}
 

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from dualnerf import kernels
 from dualnerf.fields import RadianceField
 from dualnerf.occupancy import OccupancyGrid
 
@@ -104,21 +105,42 @@ class DualField(nn.Module):
     def query(self, x, d, blend=None, retreat: float = 1.0, dir_features=None):
         if dir_features is None:          # one SH evaluation for both fields (equal configs)
             dir_features = self.static_field.direction_features(d)
-        with torch.no_grad():
-            h_sigma_s, h_color_s = self.static_field(x, d, dir_features)
         if blend is None:
-            return h_sigma_s, h_color_s
+            with torch.no_grad():
+                return self.static_field(x, d, dir_features)
         w_density, w_color = _effective_blend(blend, retreat)
-        h_sigma_d, h_color_d = self.dynamic_field(x, d, dir_features)
+        pair = self._pair_features(x)
+        with torch.no_grad():
+            if pair is None:
+                h_sigma_s, h_color_s = self.static_field(x, d, dir_features)
+            else:
+                h_sigma_s, h_color_s = self.static_field.heads(pair[0], dir_features)
+        if pair is None:
+            h_sigma_d, h_color_d = self.dynamic_field(x, d, dir_features)
+        else:
+            h_sigma_d, h_color_d = self.dynamic_field.heads(pair[1], dir_features)
         return _fuse(h_sigma_s, h_sigma_d, w_density), _fuse(h_color_s, h_color_d, w_color)
 
+    def _pair_features(self, x):
+        """Both fields' encoded features of x from one pass of the fused kernel (the look-up maths shared,
+        see dualnerf.kernels), or None where the kernel does not apply. Equal bit for bit to each field's
+        own features(x)."""
+        if self.static_field.can_fuse(x) and kernels.can_fuse_pair(x, self.config.grid_features):
+            return kernels.fused_pair_features(x, *self.static_field.grid_tables(),
+                                               *self.dynamic_field.grid_tables())
+        return None
+
     def query_density(self, x, blend=None, retreat: float = 1.0):
-        with torch.no_grad():
-            h_sigma_s = self.static_field.density_hidden(x)
         if blend is None:
-            return h_sigma_s
+            with torch.no_grad():
+                return self.static_field.density_hidden(x)
         w_density, _ = _effective_blend(blend, retreat)
-        return _fuse(h_sigma_s, self.dynamic_field.density_hidden(x), w_density)
+        pair = self._pair_features(x)
+        with torch.no_grad():
+            h_sigma_s = (self.static_field.density_hidden(x) if pair is None
+                         else self.static_field.density_head(pair[0]))
+        h_sigma_d = self.dynamic_field.density_hidden(x) if pair is None else self.dynamic_field.density_head(pair[1])
+        return _fuse(h_sigma_s, h_sigma_d, w_density)
 
     def query_background(self, d, blend=None, retreat: float = 1.0, dir_features=None):
         if dir_features is None:

@@ -36,6 +36,12 @@ _GRID_INIT_SCALE = 1e-4
 def _feature_values(*shape: int, generator: torch.Generator | None) -> nn.Parameter:
     values = torch.empty(*shape)
     nn.init.uniform_(values, -_GRID_INIT_SCALE, _GRID_INIT_SCALE, generator=generator)
+    # Grids and planes are stored channels-last (same shape and values, a point's features adjacent in
+    # memory): the layout the fused look-up kernel (dualnerf.kernels) reads without a copy per call.
+    if len(shape) == 5:
+        values = values.contiguous(memory_format=torch.channels_last_3d)
+    elif len(shape) == 4:
+        values = values.contiguous(memory_format=torch.channels_last)
     return nn.Parameter(values)
 
 

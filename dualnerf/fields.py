@@ -5,6 +5,8 @@ API:
     RadianceField(config, generator=None) nn.Module
         forward(x: (M,3) in [-1,1]^3, d: (M,3) unit, dir_features=None) -> (h_sigma: (M,), h_color: (M,3))
         direction_features(d) -> (M, direction_degree**2)   SH of d; pass as dir_features to skip recomputing
+        features(x) -> (M, F)   encoded features (fused kernel or reference_features(x), see dualnerf.kernels)
+        heads(features, sh) -> (h_sigma, h_color);  density_head(features) -> h_sigma   the MLPs alone
         background_hidden(d: (R,3) unit, dir_features=None) -> (R,3)   pre-sigmoid background colour (below)
         query(x, d, blend=None, retreat=1.0, dir_features=None)   same as forward; rejects a blend
         occupancy: OccupancyGrid                  empty-space skipping state, saved with the model
@@ -34,12 +36,15 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from dualnerf import kernels
 from dualnerf.encoding import DenseGridEncoding, HashGridEncoding, PlaneGridEncoding, spherical_harmonics
 from dualnerf.occupancy import OccupancyGrid
 
 BACKGROUNDS = ("learned", "white", "black")
 # exp() beyond this would overflow float32 rendering maths; the backward uses the same clamp.
 _TRUNC_EXP_MAX = 15.0
+# Points per block in forward() without autograd (see there); tuned on 2 cores (benchmarks.bench_render).
+INFERENCE_BLOCK = 16384
 
 
 class FieldConfigError(ValueError):
@@ -160,13 +165,13 @@ class RadianceField(nn.Module):
         width = config.hidden_width
         n_features = sum(e.output_dim for e in self._encodings())
         self.density_mlp = nn.Sequential(
-            _linear(n_features, width, generator), nn.ReLU(),
+            _linear(n_features, width, generator), nn.ReLU(inplace=True),
             _linear(width, 1 + config.geo_features, generator))
         with torch.no_grad():
             self.density_mlp[-1].bias[0] = config.density_bias
         n_dir = config.direction_degree ** 2
         self.color_mlp = nn.Sequential(
-            _linear(config.geo_features + n_dir, width, generator), nn.ReLU(),
+            _linear(config.geo_features + n_dir, width, generator), nn.ReLU(inplace=True),
             _linear(width, 3, generator))
         self.background_head = _linear(n_dir, 3, generator) if config.background == "learned" else None
         self.occupancy = OccupancyGrid(config.occupancy_resolution)
@@ -174,7 +179,22 @@ class RadianceField(nn.Module):
     def _encodings(self) -> list[nn.Module]:
         return [e for e in (self.encoding, self.hash_encoding, self.plane_encoding) if e is not None]
 
+    def grid_tables(self) -> tuple[list, list]:
+        """(dense grids, planes): the tables the fused look-up kernel reads (dualnerf.kernels)."""
+        planes = list(self.plane_encoding.planes) if self.plane_encoding is not None else []
+        return list(self.encoding.grids), planes
+
+    def can_fuse(self, x: torch.Tensor) -> bool:
+        return self.hash_encoding is None and kernels.can_fuse(x, self.config.grid_features)
+
     def features(self, x: torch.Tensor) -> torch.Tensor:
+        """Concatenated encodings of x: the fused CPU kernel (dualnerf.kernels) when it applies, else the
+        encodings' plain torch code (the reference; they agree to float32 rounding)."""
+        if self.can_fuse(x):
+            return kernels.fused_grid_features(x, *self.grid_tables())
+        return self.reference_features(x)
+
+    def reference_features(self, x: torch.Tensor) -> torch.Tensor:
         encodings = self._encodings()
         if len(encodings) == 1:
             return self.encoding(x)
@@ -189,15 +209,42 @@ class RadianceField(nn.Module):
         """`dir_features` (M, degree**2): direction_features(d) computed by the caller (a renderer computes
         them once per ray, not per sample, and shares them between the fields of a DualField); then d is
         not used. The result is the same either way (element-wise maths)."""
-        out = self.density_mlp(self.features(x))
-        h_sigma, geo = out[:, 0], out[:, 1:]
         sh = self.direction_features(d) if dir_features is None else dir_features
+        return self.heads(self.features(x), sh)
+
+    def heads(self, features: torch.Tensor, sh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The MLPs: (h_sigma, h_color) from encoded features (M, F) and direction SH features (M, degree**2).
+
+        Without autograd (renders, the frozen f_S) the rows run in blocks of INFERENCE_BLOCK: the MLPs'
+        (block, hidden_width) activations then stay in cache instead of streaming through memory three
+        times per layer (bias copy, matmul, ReLU), which made them memory-bound (profile: ~40% of a
+        render). Deterministic for given inputs; equal to an unblocked evaluation up to the BLAS kernels'
+        float rounding (they may pick their inner blocking by matrix size)."""
+        if torch.is_grad_enabled() or features.shape[0] <= INFERENCE_BLOCK:
+            return self._heads_block(features, sh)
+        h_sigma = features.new_empty(features.shape[0])
+        h_color = features.new_empty(features.shape[0], 3)
+        for start in range(0, features.shape[0], INFERENCE_BLOCK):
+            block = slice(start, start + INFERENCE_BLOCK)
+            h_sigma[block], h_color[block] = self._heads_block(features[block], sh[block])
+        return h_sigma, h_color
+
+    def _heads_block(self, features: torch.Tensor, sh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.density_mlp(features)
+        h_sigma, geo = out[:, 0], out[:, 1:]
         h_color = self.color_mlp(torch.cat([geo, sh], dim=-1))
         return h_sigma, h_color
 
     def density_hidden(self, x: torch.Tensor) -> torch.Tensor:
         """h_sigma only (no colour branch): used by the occupancy-grid update."""
-        return self.density_mlp(self.features(x))[:, 0]
+        return self.density_head(self.features(x))
+
+    def density_head(self, features: torch.Tensor) -> torch.Tensor:
+        """h_sigma from encoded features (blocked without autograd, as in heads)."""
+        if torch.is_grad_enabled() or features.shape[0] <= INFERENCE_BLOCK:
+            return self.density_mlp(features)[:, 0]
+        return torch.cat([self.density_mlp(features[s:s + INFERENCE_BLOCK])[:, 0]
+                          for s in range(0, features.shape[0], INFERENCE_BLOCK)])
 
     def background_hidden(self, d: torch.Tensor, dir_features: torch.Tensor | None = None) -> torch.Tensor:
         if self.background_head is not None:

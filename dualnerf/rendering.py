@@ -32,6 +32,7 @@ import math
 
 import torch
 
+from dualnerf import kernels
 from dualnerf.fields import decode_color, decode_density
 
 
@@ -152,6 +153,18 @@ def _query_until_opaque(model, points, ray_features, delta, mask, blend, retreat
     return sigma, torch.cat(flat), torch.cat(colors)
 
 
+def ray_grid_density(grid, origins, dirs, t, scale: float) -> torch.Tensor:
+    """scale x the occupancy grid's density at the points origins + t dirs (R,S): the proposal's density
+    estimate. The fused kernel (dualnerf.kernels) gives the same cells, hence bit-for-bit the same values,
+    as this torch reference without its (R,S,3) temporaries (15% of a render)."""
+    module = kernels.grid_kernel()
+    tensors = (origins, dirs, t, grid.density)
+    if module is not None and all(x.device.type == "cpu" and x.dtype == torch.float32 for x in tensors):
+        return module.ray_grid_density(origins, dirs, t, grid.density, float(scale))
+    cells = grid.cell_index(origins[:, None, :] + t[..., None] * dirs[:, None, :])
+    return scale * grid.density.reshape(-1)[cells]
+
+
 def _direction_features(model, dirs):
     field = getattr(model, "static_field", model)       # a DualField's fields share one config
     return field.direction_features(dirs)
@@ -171,8 +184,7 @@ def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float =
     grid = model.occupancy_for(blend)
 
     def grid_density(t):
-        cells = grid.cell_index(origins[:, None, :] + t[..., None] * dirs[:, None, :])
-        return config.proposal_density_scale * grid.density.reshape(-1)[cells]
+        return ray_grid_density(grid, origins, dirs, t, config.proposal_density_scale)
 
     jitter = None
     if generator is not None:

@@ -92,6 +92,20 @@ class EditParams:
     convergence_scale: float = 0.5      # probe render resolution relative to the dataset's
 
 
+def idu_config(p: EditParams):
+    """The editing loop's configuration for these stage parameters (also used by benchmarks.profile_edit)."""
+    from dualnerf.annealing import AnnealingConfig
+    from dualnerf.dual_field import BlendSchedule
+    from dualnerf.idu import IDUConfig
+
+    return IDUConfig(dual_field=p.dual_field, annealing=p.annealing, consistency=p.consistency,
+                     iterations=p.iterations, edit_rate=p.edit_rate, edit_count=p.edit_count,
+                     rays_per_batch=p.rays_per_batch, learning_rate=p.lr, dual_lr_scale=p.dual_lr_scale,
+                     blend=BlendSchedule(p.w_max_density, p.w_max_color, p.blend_rate),
+                     annealing_config=AnnealingConfig(p.T0), seed=p.seed, lpips_weight=p.lpips_weight,
+                     lpips_net=p.lpips_net, patch_size=p.patch_size, patch_share=p.patch_share)
+
+
 class EditStage(Stage):
     name = "edit"
     version = "2"          # 2: RGB + LPIPS patch loss; CPU preset 1500 x 1 view every 10; convergence probe
@@ -104,10 +118,8 @@ class EditStage(Stage):
     def run(self, ctx: StageContext) -> None:
         import torch
 
-        from dualnerf.annealing import AnnealingConfig
         from dualnerf.dataset import load_dataset
-        from dualnerf.dual_field import BlendSchedule
-        from dualnerf.idu import IDUConfig, IterativeDatasetUpdate
+        from dualnerf.idu import IterativeDatasetUpdate
         from dualnerf.model import load_model, save_model
 
         p = ctx.params
@@ -128,12 +140,7 @@ class EditStage(Stage):
         train = dataset.indices("train")
         editor = _build_editor(p, data_dir, dataset, train, instruction)
         encoder = _build_encoder(p, data_dir, dataset, spec)
-        config = IDUConfig(dual_field=p.dual_field, annealing=p.annealing, consistency=p.consistency,
-                           iterations=p.iterations, edit_rate=p.edit_rate, edit_count=p.edit_count,
-                           rays_per_batch=p.rays_per_batch, learning_rate=p.lr, dual_lr_scale=p.dual_lr_scale,
-                           blend=BlendSchedule(p.w_max_density, p.w_max_color, p.blend_rate),
-                           annealing_config=AnnealingConfig(p.T0), seed=p.seed, lpips_weight=p.lpips_weight,
-                           lpips_net=p.lpips_net, patch_size=p.patch_size, patch_share=p.patch_share)
+        config = idu_config(p)
         probe = None
         if p.convergence_every > 0:
             from dualnerf.convergence import probe_for_scene_edit
