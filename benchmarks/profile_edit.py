@@ -11,6 +11,8 @@ variant (DF+SA+CCI) and of the single-field baseline with the edit stage's updat
                     per field (f_S, f_D / the single field), rest of the render (compositing),
                     LPIPS patch loss forward, loss + backward (LPIPS's included), optimiser step
     view update     proposal, field forward per field, compositing, editor, encoder
+    (field forward = the feature look-ups; "field MLPs" / "density MLP" are timed separately; the dual
+    field's look-ups of both fields run in one kernel pass, timed as "look-ups f_S + f_D")
     checkpoint I/O  save_state + load_state of one checkpoint
 
 The timers wrap the library's functions from outside (nothing in dualnerf/ knows about them), so the
@@ -121,6 +123,12 @@ def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Pa
         for method in ("forward", "density_hidden", "background_hidden"):
             timer.wrap(module, method, field_label(role) if method == "forward"
                        else (lambda r=role, m=method: f"{where[0]}: {m} {r}"))
+        # The MLPs alone (nested in forward, or called on the dual field's one-pass look-ups).
+        timer.wrap(module, "heads", lambda r=role: f"{where[0]}: field MLPs {r}")
+        timer.wrap(module, "density_head", lambda r=role: f"{where[0]}: density MLP {r}")
+    from dualnerf import kernels
+    saved["pair"] = timer.wrap(kernels, "fused_pair_features",
+                               lambda: f"{where[0]}: look-ups f_S + f_D (one kernel pass)")
     saved["proposal"] = timer.wrap(rendering, "proposal_intervals", lambda: f"{where[0]}: proposal")
     saved["render_rays"] = timer.wrap(rendering, "render_rays",
                                       lambda: f"{where[0]}: render rest (compositing, packing)")
@@ -171,6 +179,7 @@ def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Pa
         training.render_rays = saved["training_render_rays"]
         training.pixel_rays = saved["pixel_rays"]
         patches.patch_lpips_loss = saved["patch_lpips_loss"]
+        kernels.fused_pair_features = saved["pair"]
     return {"label": label, "total": total, "timer": timer, "updates": len(idu.updates),
             "iterations": args.iterations}
 

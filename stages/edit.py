@@ -177,7 +177,10 @@ class EditStage(Stage):
             idu.run(on_round_end=on_round_end, progress=bar.update)
         elapsed = time.perf_counter() - started
         done = idu.iteration - first
-        ctx.record(seconds_per_iteration=(elapsed / done) if done else None, iterations_run=done)
+        from dualnerf.kernels import kernel_name
+
+        ctx.record(seconds_per_iteration=(elapsed / done) if done else None, iterations_run=done,
+                   field_kernel=kernel_name())
 
         out = ctx.out_dir
         model = idu.final_model()

@@ -116,7 +116,11 @@ class FitStage(Stage):
             raise FitInputError(f"fit: dataset {ctx.inputs['dataset']} has no training views (all held out); "
                                 "rerun preprocess with a larger holdout_every")
         config = field_config(p)
-        ctx.record(seed=p.seed, field_config=config.to_dict(), lpips=lpips_setting(p))
+        from dualnerf.kernels import kernel_name
+
+        # Which look-up code ran: the fused kernel and the torch reference agree to float rounding only.
+        ctx.record(seed=p.seed, field_config=config.to_dict(), lpips=lpips_setting(p),
+                   field_kernel=kernel_name())
         ctx.log.info("loss: %s", lpips_setting(p))
         _FitRun(ctx, dataset, config).train_and_publish()
 
