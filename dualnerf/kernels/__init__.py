@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import os
+import subprocess
 import threading
 from pathlib import Path
 
@@ -48,9 +49,10 @@ def _build():
     try:
         from torch.utils.cpp_extension import load
 
-        return load("dualnerf_grid_encoding", [str(_SOURCE)], extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"],
-                    extra_ldflags=["-fopenmp"], verbose=False)
-    except Exception as error:        # no compiler, no ninja, a failed build: the reference path still works
+        return load("dualnerf_grid_encoding", [str(_SOURCE)],
+                    extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"], extra_ldflags=["-fopenmp"], verbose=False)
+    # No compiler, no ninja, a failed build: the reference path still works.
+    except (OSError, RuntimeError, ImportError, subprocess.CalledProcessError) as error:
         log.warning("dualnerf: the fused grid-encoding kernel could not be built (%s); using the plain torch "
                     "reference path, which is ~2x slower. Install a C++ compiler and ninja, or set "
                     "DUALNERF_KERNELS=0 to silence this.", str(error).splitlines()[0] if str(error) else error)
