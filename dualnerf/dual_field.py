@@ -109,38 +109,32 @@ class DualField(nn.Module):
             with torch.no_grad():
                 return self.static_field(x, d, dir_features)
         w_density, w_color = _effective_blend(blend, retreat)
-        pair = self._pair_features(x)
+        features_s, features_d = self._both_features(x)
         with torch.no_grad():
-            if pair is None:
-                h_sigma_s, h_color_s = self.static_field(x, d, dir_features)
-            else:
-                h_sigma_s, h_color_s = self.static_field.heads(pair[0], dir_features)
-        if pair is None:
-            h_sigma_d, h_color_d = self.dynamic_field(x, d, dir_features)
-        else:
-            h_sigma_d, h_color_d = self.dynamic_field.heads(pair[1], dir_features)
+            h_sigma_s, h_color_s = self.static_field.heads(features_s, dir_features)
+        h_sigma_d, h_color_d = self.dynamic_field.heads(features_d, dir_features)
         return _fuse(h_sigma_s, h_sigma_d, w_density), _fuse(h_color_s, h_color_d, w_color)
 
-    def _pair_features(self, x):
-        """Both fields' encoded features of x from one pass of the fused kernel (the look-up maths shared,
-        see dualnerf.kernels), or None where the kernel does not apply. Equal bit for bit to each field's
-        own features(x)."""
+    def _both_features(self, x):
+        """(f_S's encoded features of x without gradient, f_D's). Where the fused kernel applies, one pass
+        computes both (the look-up maths shared, see dualnerf.kernels); each equals that field's own
+        features(x) bit for bit."""
         if self.static_field.can_fuse(x) and kernels.can_fuse_pair(x, self.config.grid_features):
             return kernels.fused_pair_features(x, *self.static_field.grid_tables(),
                                                *self.dynamic_field.grid_tables())
-        return None
+        with torch.no_grad():
+            features_s = self.static_field.features(x)
+        return features_s, self.dynamic_field.features(x)
 
     def query_density(self, x, blend=None, retreat: float = 1.0):
         if blend is None:
             with torch.no_grad():
                 return self.static_field.density_hidden(x)
         w_density, _ = _effective_blend(blend, retreat)
-        pair = self._pair_features(x)
+        features_s, features_d = self._both_features(x)
         with torch.no_grad():
-            h_sigma_s = (self.static_field.density_hidden(x) if pair is None
-                         else self.static_field.density_head(pair[0]))
-        h_sigma_d = self.dynamic_field.density_hidden(x) if pair is None else self.dynamic_field.density_head(pair[1])
-        return _fuse(h_sigma_s, h_sigma_d, w_density)
+            h_sigma_s = self.static_field.density_head(features_s)
+        return _fuse(h_sigma_s, self.dynamic_field.density_head(features_d), w_density)
 
     def query_background(self, d, blend=None, retreat: float = 1.0, dir_features=None):
         if dir_features is None:

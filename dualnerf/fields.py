@@ -43,7 +43,7 @@ from dualnerf.occupancy import OccupancyGrid
 BACKGROUNDS = ("learned", "white", "black")
 # exp() beyond this would overflow float32 rendering maths; the backward uses the same clamp.
 _TRUNC_EXP_MAX = 15.0
-# Points per block in forward() without autograd (see there); tuned on 2 cores (benchmarks.bench_render).
+# Rows per block in heads() / density_head() without autograd (see heads); tuned on 2 cores (renders).
 INFERENCE_BLOCK = 16384
 
 

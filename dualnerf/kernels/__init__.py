@@ -120,7 +120,7 @@ def fused_grid_features(x: torch.Tensor, dense_grids, planes) -> torch.Tensor:
     if x.requires_grad:
         raise ValueError("fused_grid_features: no gradient w.r.t. the sample positions; use the reference "
                          "encodings (dualnerf.encoding) when x requires grad")
-    return _FusedGridFeatures.apply(x.float(), len(dense_grids), *dense_grids, *planes)
+    return _FusedGridFeatures.apply(x, len(dense_grids), *dense_grids, *planes)
 
 
 def can_fuse(x: torch.Tensor, features: int) -> bool:

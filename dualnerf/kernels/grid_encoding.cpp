@@ -73,6 +73,26 @@ int64_t total_columns(const std::vector<Table>& tables) {
   return tables.empty() ? 0 : tables.back().column + tables.back().channels;
 }
 
+// Channels-last copies of the tables (no copy when they are stored so) appended to `keep`, which holds
+// them alive while the kernel reads their data pointers.
+std::vector<const float*> table_data(const std::vector<torch::Tensor>& dense, const std::vector<torch::Tensor>& planes,
+                                     std::vector<torch::Tensor>& keep) {
+  std::vector<const float*> data;
+  for (auto& g : channels_last(dense, true)) { keep.push_back(g); data.push_back(g.data_ptr<float>()); }
+  for (auto& p : channels_last(planes, false)) { keep.push_back(p); data.push_back(p.data_ptr<float>()); }
+  return data;
+}
+
+// Blocks of points in parallel, each handed to block(begin, end): a block's look-ups into one table hit
+// nearby cells (neighbouring samples along a ray), which stay in cache while the block runs table by table.
+template <typename Block>
+void for_each_block(int64_t m, Block&& block) {
+  constexpr int64_t kBlock = 1024;
+  at::parallel_for(0, (m + kBlock - 1) / kBlock, 1, [&](int64_t block_begin, int64_t block_end) {
+    for (int64_t b = block_begin; b < block_end; ++b) block(b * kBlock, std::min(m, (b + 1) * kBlock));
+  });
+}
+
 // Calls visit(offset_in_table, weight) for the corners of point `x` in table `t`.
 template <typename Visit>
 inline void corners(const Table& t, const float* x, Visit&& visit) {
@@ -135,23 +155,14 @@ torch::Tensor encode_forward(torch::Tensor x, std::vector<torch::Tensor> dense, 
   for (const auto& t : tables)
     TORCH_CHECK(t.channels == 1 || t.channels == 2 || t.channels == 4 || t.channels == 8,
                 "grid encoding kernel: features per table must be 1, 2, 4 or 8");
-  auto dense_cl = channels_last(dense, true);
-  auto planes_cl = channels_last(planes, false);
-  std::vector<const float*> data;
-  for (auto& g : dense_cl) data.push_back(g.data_ptr<float>());
-  for (auto& p : planes_cl) data.push_back(p.data_ptr<float>());
+  std::vector<torch::Tensor> keep;
+  const auto data = table_data(dense, planes, keep);
   const int64_t m = x.size(0), n_out = total_columns(tables);
   auto out = torch::empty({m, n_out}, x.options());
   const float* xp = x.data_ptr<float>();
   float* op = out.data_ptr<float>();
-  // Blocks of points, table by table within a block: a block's look-ups into one table hit nearby cells
-  // (neighbouring samples along a ray), which stay in cache.
-  constexpr int64_t kBlock = 1024;
-  at::parallel_for(0, (m + kBlock - 1) / kBlock, 1, [&](int64_t block_begin, int64_t block_end) {
-    for (int64_t b = block_begin; b < block_end; ++b) {
-      const int64_t begin = b * kBlock, end = std::min(m, begin + kBlock);
-      for (size_t k = 0; k < tables.size(); ++k) forward_any(tables[k], data[k], xp, op, n_out, begin, end);
-    }
+  for_each_block(m, [&](int64_t begin, int64_t end) {
+    for (size_t k = 0; k < tables.size(); ++k) forward_any(tables[k], data[k], xp, op, n_out, begin, end);
   });
   return out;
 }
@@ -187,24 +198,17 @@ std::vector<torch::Tensor> encode_forward_pair(torch::Tensor x, std::vector<torc
                     tables[k].channels == 2,
                 "the two fields must have the same tables, with 2 features each (pair kernel)");
   std::vector<torch::Tensor> keep;
-  std::vector<const float*> data_a, data_b;
-  for (auto& g : channels_last(dense_a, true)) { keep.push_back(g); data_a.push_back(g.data_ptr<float>()); }
-  for (auto& g : channels_last(planes_a, false)) { keep.push_back(g); data_a.push_back(g.data_ptr<float>()); }
-  for (auto& g : channels_last(dense_b, true)) { keep.push_back(g); data_b.push_back(g.data_ptr<float>()); }
-  for (auto& g : channels_last(planes_b, false)) { keep.push_back(g); data_b.push_back(g.data_ptr<float>()); }
+  const auto data_a = table_data(dense_a, planes_a, keep);
+  const auto data_b = table_data(dense_b, planes_b, keep);
   const int64_t m = x.size(0), n_out = total_columns(tables);
   auto out_a = torch::empty({m, n_out}, x.options());
   auto out_b = torch::empty({m, n_out}, x.options());
   const float* xp = x.data_ptr<float>();
   float* oa = out_a.data_ptr<float>();
   float* ob = out_b.data_ptr<float>();
-  constexpr int64_t kBlock = 1024;
-  at::parallel_for(0, (m + kBlock - 1) / kBlock, 1, [&](int64_t block_begin, int64_t block_end) {
-    for (int64_t b = block_begin; b < block_end; ++b) {
-      const int64_t begin = b * kBlock, end = std::min(m, begin + kBlock);
-      for (size_t k = 0; k < tables.size(); ++k)
-        forward_table_pair<2>(tables[k], data_a[k], data_b[k], xp, oa, ob, n_out, begin, end);
-    }
+  for_each_block(m, [&](int64_t begin, int64_t end) {
+    for (size_t k = 0; k < tables.size(); ++k)
+      forward_table_pair<2>(tables[k], data_a[k], data_b[k], xp, oa, ob, n_out, begin, end);
   });
   return {out_a, out_b};
 }
@@ -242,9 +246,10 @@ std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_o
 
 
 // Occupancy-grid density along rays (the proposal's cheap density estimate, dualnerf.rendering):
-// out[r, s] = scale * density[cell(o_r + t[r, s] d_r)], cell() as OccupancyGrid.cell_index. Same float
-// operations in the same order as the torch reference (mul, add; (x + 1) * (0.5 r), floor, clamp), and
-// built with -ffp-contract=off, so the cells and hence the result are bit-for-bit those of the reference.
+// out[r, s] = scale * density[cell(o_r + t[r, s] d_r)], cell() as OccupancyGrid.cell_index. The same
+// rounded float operations as the torch reference (mul, add; (x + 1) * (0.5 r)), built with
+// -ffp-contract=off, and an equivalent integer step (below), so the cells and hence the result are
+// bit-for-bit those of the reference.
 torch::Tensor ray_grid_density(torch::Tensor origins, torch::Tensor dirs, torch::Tensor t, torch::Tensor density,
                                double scale) {
   TORCH_CHECK(origins.scalar_type() == torch::kFloat32 && dirs.scalar_type() == torch::kFloat32 &&
