@@ -29,7 +29,6 @@ class PreprocessParams:
                                             # matches support a radial term (see dualnerf.io.sfm)
     single_camera: bool = True              # one camera shared by all images
     min_registered_fraction: float = 0.5    # fail when SfM registers fewer images than this
-    num_threads: int = 0                    # non-semantic; 0: the threads the engine grants
 
 
 class PreprocessStage(Stage):
@@ -38,8 +37,7 @@ class PreprocessStage(Stage):
     Params = PreprocessParams
     upstream = ("scene",)
     external = ("source",)
-    resources = Resources(cpus=2, gpus=0, memory_gb=3)
-    nonsemantic_params = frozenset({"num_threads"})
+    resources = Resources(cpus=1, gpus=0, memory_gb=3)     # SfM runs on one thread (dualnerf.io.sfm)
     packages = ("pycolmap", "opencv-contrib-python-headless", "numpy", "OpenImageIO")
 
     def run(self, ctx: StageContext) -> None:
@@ -59,7 +57,6 @@ class PreprocessStage(Stage):
                 f"it (its whole content enters the cache key, so every image the file names must be in it).")
         p = ctx.params
         values = dataclasses.asdict(p)
-        values["num_threads"] = p.num_threads or max(1, ctx.threads)
         config = PreprocessConfig(**values)
         ctx.log.info("preprocessing %s (method %s)", source, p.method)
         report = preprocess(source, ctx.out_dir, config, scratch=ctx.scratch_dir / "sfm")

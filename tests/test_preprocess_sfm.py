@@ -44,7 +44,7 @@ def test_umeyama_recovers_a_known_similarity():
 @pytest.mark.slow
 def test_sfm_registers_tiny_and_colmap_import_matches(tiny_scene, tmp_path):
     before = tree_hash(tiny_scene)
-    config = PreprocessConfig(method="auto", num_threads=2)
+    config = PreprocessConfig(method="auto")
     report = preprocess(tiny_scene, tmp_path / "sfm", config, scratch=tmp_path / "scratch")
     assert tree_hash(tiny_scene) == before                     # the input folder is never modified
     assert report["method"] == "sfm" and report["registered"] == report["total"] == 26
@@ -52,8 +52,8 @@ def test_sfm_registers_tiny_and_colmap_import_matches(tiny_scene, tmp_path):
     assert report["mean_reprojection_error"] < 1.0
     error, focal = pose_errors(tiny_scene, tmp_path / "sfm")
     assert error < 0.03 and abs(focal) < 0.06
-    # num_threads is non-semantic: one thread gives the very same cameras.
-    preprocess(tiny_scene, tmp_path / "sfm1", PreprocessConfig(method="auto", num_threads=1))
+    # SfM is deterministic: a second run gives the very same cameras.
+    preprocess(tiny_scene, tmp_path / "sfm1", PreprocessConfig(method="auto"))
     assert np.array_equal(load_dataset(tmp_path / "sfm1").c2w, load_dataset(tmp_path / "sfm").c2w)
     # The same model imported as a COLMAP sparse folder gives the same dataset.
     colmap = tmp_path / "colmap"
@@ -84,7 +84,7 @@ def test_sfm_on_campsite_meets_pose_and_focal_accuracy(tmp_path):
     from dualnerf.scenes.library import BUILDERS
 
     scene = generate_scene("campsite", tmp_path / "campsite", n_views=36, workers=2)
-    report = preprocess(scene, tmp_path / "ds", PreprocessConfig(method="sfm", num_threads=2))
+    report = preprocess(scene, tmp_path / "ds", PreprocessConfig(method="sfm"))
     assert report["registered"] == report["total"] == 36
     error, focal = pose_errors(scene, tmp_path / "ds")
     assert error <= 0.01, f"camera-centre error {error:.4f} of the radius"
@@ -106,15 +106,14 @@ def test_sfm_that_registers_under_half_lists_the_images(tiny_scene, tmp_path):
                            interpolation=cv2.INTER_CUBIC)
         cv2.imwrite(str(folder / f"zz_other_{i}.png"), noise)
     with pytest.raises(InputError, match=r"registered only \d+ of 18") as err:
-        preprocess(folder, tmp_path / "out", PreprocessConfig(method="sfm", num_threads=2))
+        preprocess(folder, tmp_path / "out", PreprocessConfig(method="sfm"))
     message = str(err.value)
     assert "zz_other_0.png" in message and "overlap" in message
 
 
 @pytest.mark.slow
 def test_sequential_matcher_registers_tiny(tiny_scene, tmp_path):
-    report = preprocess(tiny_scene, tmp_path / "seq", PreprocessConfig(method="sfm", matcher="sequential",
-                                                                       num_threads=2))
+    report = preprocess(tiny_scene, tmp_path / "seq", PreprocessConfig(method="sfm", matcher="sequential"))
     assert report["matcher"] == "sequential" and report["registered"] == report["total"] == 26
     error, _ = pose_errors(tiny_scene, tmp_path / "seq")
     assert error < 0.03

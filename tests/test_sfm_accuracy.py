@@ -21,7 +21,7 @@ UNSEEN_ARC = {"n_views": 40, "arc_degrees": 200.0, "camera_radius": 4.4, "camera
 
 @pytest.mark.slow
 def test_sfm_on_tiny_is_within_one_percent_and_keeps_the_pinhole_images(tiny_scene, tmp_path):
-    report = preprocess(tiny_scene, tmp_path / "ds", PreprocessConfig(method="sfm", num_threads=2))
+    report = preprocess(tiny_scene, tmp_path / "ds", PreprocessConfig(method="sfm"))
     assert report["registered"] == report["total"] == 26
     error, focal = pose_errors(tiny_scene, tmp_path / "ds")
     assert error <= 0.01, f"camera-centre error {100 * error:.2f}% of the radius"
@@ -39,7 +39,7 @@ def test_sfm_on_an_unseen_arc_scene_is_within_one_percent(tmp_path):
     from dualnerf.scenes import generate_scene
 
     scene = generate_scene("tiny", tmp_path / "arc", workers=2, **UNSEEN_ARC)
-    report = preprocess(scene, tmp_path / "ds", PreprocessConfig(method="sfm", num_threads=2))
+    report = preprocess(scene, tmp_path / "ds", PreprocessConfig(method="sfm"))
     assert report["registered"] == report["total"] == 40
     error, focal = pose_errors(scene, tmp_path / "ds")
     assert error <= 0.01, f"camera-centre error {100 * error:.2f}% of the radius"
@@ -63,7 +63,7 @@ def test_real_radial_distortion_is_still_estimated_and_undone(tiny_scene, tmp_pa
     for path in sorted((tiny_scene / "images").iterdir()):
         image = cv2.imread(str(path))
         cv2.imwrite(str(folder / path.name), cv2.remap(image, ideal[..., 0], ideal[..., 1], cv2.INTER_LINEAR))
-    report = preprocess(folder, tmp_path / "ds", PreprocessConfig(method="sfm", num_threads=2))
+    report = preprocess(folder, tmp_path / "ds", PreprocessConfig(method="sfm"))
     assert report["camera_model"] == "SIMPLE_RADIAL", report.get("camera_model_choice")
     assert report["camera_model_choice"]["gain"] >= 0.02 and report["undistorted"]
     assert report["distortion"][0] == pytest.approx(0.1, rel=0.25)

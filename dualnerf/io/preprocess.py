@@ -26,7 +26,6 @@ class PreprocessConfig:
     max_size: int = 512             # long side of the stored images, pixels
     holdout_every: int = 8          # every k-th view is held out (0: none)
     seed: int = 0                   # SfM RANSAC / mapper seed
-    num_threads: int = 1            # SfM threads (does not change the result class, only speed)
     matcher: str = "auto"           # auto | exhaustive | sequential
     min_registered_fraction: float = 0.5
     single_camera: bool = True      # one shared camera for all images (same device, same zoom)

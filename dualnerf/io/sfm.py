@@ -3,10 +3,12 @@ incremental mapping; keeps the largest model.
 
 The input images are first read, checked and converted (EXIF orientation, 16-bit, RGBA, grayscale) to
 8-bit PNG copies in the scratch folder, so COLMAP sees exactly the pixels the dataset will store and the
-user's folder is never touched. Seeds are set explicitly. Feature extraction runs on one thread: with
-several, COLMAP's result changed between runs (measured: camera centres moved by up to 0.07 in
-normalised units on `tiny`), while matching and mapping gave identical results with 1 or 2 threads,
-so `num_threads` only changes speed.
+user's folder is never touched. Seeds are set explicitly and every COLMAP step runs on one thread:
+with several, the result depends on how the threads are scheduled. Feature extraction with 2 threads
+moved camera centres by up to 0.07 in normalised units between runs on `tiny`; matching and mapping
+with 2 threads agreed with 1 thread on a quiet machine but not in a CI run (centres moved by ~0.002;
+not reproduced here, so the cause, probably thread scheduling in RANSAC or bundle adjustment, is a guess).
+A preprocess is computed once per scene and cached, so the lost speed costs little.
 
 Accuracy (max camera-centre error after a similarity alignment, % of the camera-circle radius, measured
 on `tiny` and a 40-view 200-degree arc of the tiny world with other radius, height and FOV, seeds 0-2):
@@ -105,13 +107,13 @@ def run_sfm(source: Path, scratch: Path, config) -> Reconstruction:
     work_images = scratch / "images"
     names, paths, _sizes = prepare_images(Path(source), work_images, warnings)
     database = scratch / "database.db"
-    threads = max(1, int(config.num_threads))
+    threads = 1                     # deterministic results (see the module docstring)
     pycolmap.set_random_seed(int(config.seed))
 
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "SIMPLE_PINHOLE" if config.camera_model == AUTO_MODEL else config.camera_model
     extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = 1      # deterministic results (see the module docstring)
+    extraction.num_threads = threads
     extraction.use_gpu = False
     extraction.max_image_size = SFM_MAX_IMAGE_SIZE
     extraction.sift.max_num_features = 8192
