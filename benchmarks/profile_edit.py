@@ -7,10 +7,11 @@ Fits f_S once with the fit stage (cached in --fit-dir, default $TMPDIR/dualnerf-
 reuse it with the same arguments), then runs `--iterations` editing iterations of the full DualNeRF
 variant (DF+SA+CCI) and of the single-field baseline with the edit stage's update rate, timing:
 
-    training step   sampling (ray batch, rays, proposal intervals), occupancy-grid refresh, field forward
-                    per field (f_S, f_D / the single field), rest of the render (compositing),
-                    LPIPS patch loss forward, loss + backward (LPIPS's included), optimiser step
-    view update     proposal, field forward per field, compositing, editor, encoder
+    training step   sampling (ray batch, rays, the sampler: proposal intervals + occupancy), occupancy-grid
+                    refresh, field forward per field (f_S, f_D / the single field), rest of the render
+                    (compositing), LPIPS patch loss forward, loss + backward (LPIPS's included), optimiser step
+    view update     sampler, the fused inference kernel (both fields' look-ups and MLPs, no autograd),
+                    compositing, editor, encoder
     (field forward = the feature look-ups; "field MLPs" / "density MLP" are timed separately; the dual
     field's look-ups of both fields run in one kernel pass, timed as "look-ups f_S + f_D")
     checkpoint I/O  save_state + load_state of one checkpoint
@@ -129,7 +130,9 @@ def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Pa
     from dualnerf import kernels
     saved["pair"] = timer.wrap(kernels, "fused_pair_features",
                                lambda: f"{where[0]}: look-ups f_S + f_D (one kernel pass)")
-    saved["proposal"] = timer.wrap(rendering, "proposal_intervals", lambda: f"{where[0]}: proposal")
+    saved["inference"] = timer.wrap(kernels, "field_inference",
+                                    lambda: f"{where[0]}: field inference kernel (look-ups + MLPs, fused)")
+    saved["sampler"] = timer.wrap(rendering, "ray_samples", lambda: f"{where[0]}: sampler (proposal + occupancy)")
     saved["render_rays"] = timer.wrap(rendering, "render_rays",
                                       lambda: f"{where[0]}: render rest (compositing, packing)")
     saved["training_render_rays"] = training.render_rays
@@ -174,7 +177,8 @@ def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Pa
             idu.load_state(folder)
     finally:
         torch.Tensor.backward = original_backward
-        rendering.proposal_intervals = saved["proposal"]
+        rendering.ray_samples = saved["sampler"]
+        kernels.field_inference = saved["inference"]
         rendering.render_rays = saved["render_rays"]
         training.render_rays = saved["training_render_rays"]
         training.pixel_rays = saved["pixel_rays"]

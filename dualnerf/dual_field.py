@@ -109,6 +109,11 @@ class DualField(nn.Module):
             with torch.no_grad():
                 return self.static_field(x, d, dir_features)
         w_density, w_color = _effective_blend(blend, retreat)
+        if self.static_field.can_infer(x):      # renders: both fields and eqs. 4-5 in one kernel pass
+            return kernels.field_inference(x, dir_features, self.static_field.grid_tables(),
+                                           self.static_field.mlp_layers(),
+                                           second=(self.dynamic_field.grid_tables(), self.dynamic_field.mlp_layers()),
+                                           blend=(w_density, w_color))
         features_s, features_d = self._both_features(x)
         with torch.no_grad():
             h_sigma_s, h_color_s = self.static_field.heads(features_s, dir_features)

@@ -187,6 +187,14 @@ class RadianceField(nn.Module):
     def can_fuse(self, x: torch.Tensor) -> bool:
         return self.hash_encoding is None and kernels.can_fuse(x, self.config.grid_features)
 
+    def can_infer(self, x: torch.Tensor) -> bool:
+        """The fused inference kernel (look-ups and MLPs in one pass, no autograd) applies to x."""
+        return self.hash_encoding is None and kernels.can_infer(x, self.config.grid_features)
+
+    def mlp_layers(self) -> tuple[nn.Linear, nn.Linear, nn.Linear, nn.Linear]:
+        """(density hidden, density out, colour hidden, colour out): the layers heads() runs, in order."""
+        return self.density_mlp[0], self.density_mlp[2], self.color_mlp[0], self.color_mlp[2]
+
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """Concatenated encodings of x: the fused CPU kernel (dualnerf.kernels) when it applies, else the
         encodings' plain torch code (the reference; they agree to float32 rounding)."""
@@ -208,8 +216,11 @@ class RadianceField(nn.Module):
                 dir_features: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """`dir_features` (M, degree**2): direction_features(d) computed by the caller (a renderer computes
         them once per ray, not per sample, and shares them between the fields of a DualField); then d is
-        not used. The result is the same either way (element-wise maths)."""
+        not used. The result is the same either way (element-wise maths). Without autograd the fused
+        inference kernel runs where it applies (dualnerf.kernels.field_inference; equal to float32 rounding)."""
         sh = self.direction_features(d) if dir_features is None else dir_features
+        if self.can_infer(x):           # renders: look-ups and MLPs in one cache-resident pass
+            return kernels.field_inference(x, sh, self.grid_tables(), self.mlp_layers())
         return self.heads(self.features(x), sh)
 
     def heads(self, features: torch.Tensor, sh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -6,6 +6,8 @@ API:
     proposal_intervals(t_start, t_end, points_density, num_samples, num_proposal, uniform_share, jitter=None)
         -> (t (R,S) interval midpoints, delta (R,S) interval lengths)
     composite(sigma (R,S), delta (R,S)) -> weights (R,S)        w_i = T_i (1 - exp(-delta_i sigma_i))
+    ray_samples(grid, config, origins, dirs, t_start, t_end, num_samples, jitter=None)
+        -> (t (R,S), delta (R,S), mask (R,S) bool)   proposal intervals + occupancy (fused kernel or torch)
     render_rays(model, origins, dirs, near, far, *, blend=None, retreat=1.0, generator=None,
                 with_distortion=False, samples_per_ray=None, termination_eps=0.0)
         -> dict(color (R,3), opacity (R,), evaluated: int[, distortion (R,)])
@@ -155,14 +157,32 @@ def _query_until_opaque(model, points, ray_features, delta, mask, blend, retreat
 
 def ray_grid_density(grid, origins, dirs, t, scale: float) -> torch.Tensor:
     """scale x the occupancy grid's density at the points origins + t dirs (R,S): the proposal's density
-    estimate. The fused kernel (dualnerf.kernels) gives the same cells, hence bit-for-bit the same values,
-    as this torch reference without its (R,S,3) temporaries (15% of a render)."""
-    module = kernels.grid_kernel()
-    tensors = (origins, dirs, t, grid.density)
-    if module is not None and all(x.device.type == "cpu" and x.dtype == torch.float32 for x in tensors):
-        return module.ray_grid_density(origins, dirs, t, grid.density, float(scale))
+    estimate (the torch reference of the fused sampler in ray_samples)."""
     cells = grid.cell_index(origins[:, None, :] + t[..., None] * dirs[:, None, :])
     return scale * grid.density.reshape(-1)[cells]
+
+
+def ray_samples(grid, config, origins, dirs, t_start, t_end, n_samples: int, jitter=None):
+    """The render sampler: (t (R,S) interval midpoints, delta (R,S) lengths, mask (R,S)) for rays clipped
+    to [t_start, t_end], mask = the ray overlaps the cube and the sample's occupancy cell may hold
+    density. proposal_intervals on the occupancy grid's scaled density, then OccupancyGrid.occupied (the
+    torch reference); the fused kernel computes the same per ray in one pass (equal to float32 rounding)."""
+    module = kernels.grid_kernel()
+    tensors = (origins, dirs, t_start, t_end, grid.density)
+    if module is not None and all(x.device.type == "cpu" and x.dtype == torch.float32 for x in tensors):
+        no_jitter = torch.empty(0)
+        return tuple(module.ray_samples(origins, dirs, t_start, t_end, grid.density, grid.mask,
+                                        float(config.proposal_density_scale), int(config.proposal_samples),
+                                        int(n_samples), float(config.proposal_uniform),
+                                        no_jitter if jitter is None else jitter))
+
+    def grid_density(t):
+        return ray_grid_density(grid, origins, dirs, t, config.proposal_density_scale)
+
+    t, delta = proposal_intervals(t_start, t_end, grid_density, n_samples, config.proposal_samples,
+                                  config.proposal_uniform, jitter)
+    points = origins[:, None, :] + t[..., None] * dirs[:, None, :]
+    return t, delta, (t_end > t_start)[:, None] & grid.occupied(points)
 
 
 def _direction_features(model, dirs):
@@ -183,17 +203,11 @@ def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float =
     t_start, t_end = ray_cube_bounds(origins, dirs, near, far)
     grid = model.occupancy_for(blend)
 
-    def grid_density(t):
-        return ray_grid_density(grid, origins, dirs, t, config.proposal_density_scale)
-
     jitter = None
     if generator is not None:
         jitter = torch.rand((n_rays, n_samples - 1), generator=generator).to(origins.device)
-    t, delta = proposal_intervals(t_start, t_end, grid_density, n_samples, config.proposal_samples,
-                                  config.proposal_uniform, jitter)
+    t, delta, mask = ray_samples(grid, config, origins, dirs, t_start, t_end, n_samples, jitter)
     points = origins[:, None, :] + t[..., None] * dirs[:, None, :]
-    # Valid: the ray overlaps the cube, and the sample's occupancy cell may hold density.
-    mask = (t_end > t_start)[:, None] & grid.occupied(points)
     # The view direction's SH features once per ray (not per sample), shared by the fields of a DualField.
     ray_features = _direction_features(model, dirs)
     if termination_eps > 0.0:

@@ -12,8 +12,9 @@ API:
 
 The learning rate is constant unless lr_decay_steps > 0 (exponential decay, a function of `step` only).
 One `step` draws `rays_per_batch` random (training view, pixel) pairs from the seeded CPU generator,
-renders them with jittered samples, and takes one Adam step on the parameters that require gradients
-(so a DualField trains only f_D). Every `occupancy_every` steps (after `occupancy_warmup`) it first
+renders them with jittered samples, and takes one Adam step (dualnerf.optim.FieldAdam: feature-table
+entries without gradient are skipped) on the parameters that require gradients (so a DualField trains
+only f_D). Every `occupancy_every` steps (after `occupancy_warmup`) it first
 refreshes the occupancy grid of the model being trained (the fused one for a DualField with `blend`).
 Everything random comes from `generator`, so equal seeds give equal runs, and a resumed trainer
 (load_state_dict) continues exactly as an uninterrupted one. The images are not part of the state:
@@ -26,14 +27,17 @@ With lpips_weight = 0 a batch and its random draws are exactly those of the RGB-
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 
+from dualnerf import kernels
 from dualnerf.cameras import Cameras, pixel_rays
 from dualnerf.fields import decode_density
+from dualnerf.optim import FieldAdam, feature_table_parameters
 from dualnerf.rendering import render_rays
 
 
@@ -79,14 +83,6 @@ def normalised_view_weights(scores: torch.Tensor, train_indices: Sequence[int]) 
     return scores / mean
 
 
-def _adam(params, config: TrainConfig) -> torch.optim.Adam:
-    kwargs = {"lr": config.learning_rate, "betas": (config.beta1, config.beta2), "eps": config.eps}
-    try:
-        return torch.optim.Adam(params, fused=True, **kwargs)
-    except (RuntimeError, TypeError):       # fused kernels are missing for some device/dtype combinations
-        return torch.optim.Adam(params, **kwargs)
-
-
 class RayTrainer:
     def __init__(self, model, images: torch.Tensor, cameras: Cameras, config: TrainConfig,
                  generator: torch.Generator, train_indices: Sequence[int] | None = None):
@@ -106,10 +102,17 @@ class RayTrainer:
         self.train_indices = torch.as_tensor(list(indices), dtype=torch.long)
         if len(self.train_indices) == 0:
             raise TrainingInputError("RayTrainer: no training views (every frame is held out)")
-        params = [p for p in model.parameters() if p.requires_grad]
-        if not params:
+        if not any(p.requires_grad for p in model.parameters()):
             raise TrainingInputError("RayTrainer: the model has no trainable parameters")
-        self.optimizer = _adam(params, config)
+        # The feature tables' gradients go to persistent buffers that the optimiser consumes chunk by chunk
+        # (dualnerf.kernels.TableGradients), where the fused look-up kernel runs.
+        tables = [p for p in feature_table_parameters(model) if p.requires_grad]
+        self.table_gradients = None
+        if kernels.grid_kernel() is not None and tables and all(
+                p.device.type == "cpu" and p.dtype == torch.float32 for p in tables):
+            self.table_gradients = kernels.TableGradients(tables)
+        self.optimizer = FieldAdam(model, config.learning_rate, (config.beta1, config.beta2), config.eps,
+                                   table_gradients=self.table_gradients)
         # Proposal bin spacing: the cube diagonal split into proposal_samples bins.
         spacing = 2.0 * math.sqrt(3.0) / model.config.proposal_samples
         self.sigma_threshold = -math.log(1.0 - config.occupancy_alpha) / spacing
@@ -170,8 +173,9 @@ class RayTrainer:
         views_d, u_d, v_d = views.to(self.device), u.to(self.device), v.to(self.device)
         cams = self.cameras
         origins, dirs = pixel_rays(cams.c2w[views_d], cams.intrinsics[views_d], u_d, v_d)
-        result = render_rays(self.model, origins, dirs, cams.near[views_d], cams.far[views_d],
-                             blend=blend, generator=self.generator, with_distortion=cfg.distortion_weight > 0)
+        with self.table_gradients.collect() if self.table_gradients is not None else contextlib.nullcontext():
+            result = render_rays(self.model, origins, dirs, cams.near[views_d], cams.far[views_d],
+                                 blend=blend, generator=self.generator, with_distortion=cfg.distortion_weight > 0)
         ray_weights = None
         if view_weights is not None:
             ray_weights = normalised_view_weights(view_weights, self.train_indices.tolist()).to(self.device)[views_d]

@@ -108,7 +108,7 @@ def idu_config(p: EditParams):
 
 class EditStage(Stage):
     name = "edit"
-    version = "2"          # 2: RGB + LPIPS patch loss; CPU preset 1500 x 1 view every 10; convergence probe
+    version = "3"          # 3: Adam skips feature-table entries without gradient (dualnerf.optim)
     Params = EditParams
     upstream = ("dataset", "fit")
     resources = Resources(cpus=2, gpus=0, memory_gb=3)

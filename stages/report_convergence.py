@@ -3,8 +3,8 @@
 The edit stage's curves.json carries "convergence" (dualnerf.convergence, procedural scenes only):
 psnr_in (renders of a few training views vs the ground-truth edit inside its mask) and psnr_out (vs the
 original outside it) at regular iterations. `write_convergence(rows, out_dir)` draws one panel per row
-into curves/convergence.png and titles it with `late_change_share`: the share of the in-mask curve's
-total change made during the last 10% of the iterations (small: the row has converged).
+into curves/convergence.png and titles it with `remaining_change`: the in-mask curve's fitted plateau
+and the share of its change still to come (<= 10%: converged; the plateau is a dotted line).
 """
 from __future__ import annotations
 
@@ -28,19 +28,47 @@ def load_convergence(edit_dir: Path | None) -> dict | None:
     return conv
 
 
-def late_change_share(iterations, values, tail: float = 0.1) -> float | None:
-    """|v(T) - v(T - tail T)| / (max v - min v) over the curve (None when flat or unknown): how much of the
-    curve's movement still happens in its last `tail` share of iterations."""
+def remaining_change(iterations, values) -> dict | None:
+    """How far a probe curve still is from its plateau: the least-squares fit of the saturating curve
+    v(t) = a - b exp(-t / tau) (tau searched on a log grid from 1/50 to 10x the span), whose plateau a is
+    where the curve is heading. Returns {"plateau": a, "end": the fitted value at the last iteration,
+    "remaining": a - end, "share": (a - end) / (a - fitted start)} (the share of the fitted change still
+    to come: <= 0.1 reads "converged"), or None without a change to measure. A straight line fits with
+    tau at the top of the grid, i.e. a distant plateau and a large share; noise around a level curve
+    fits a tiny change, reported as such."""
+    import numpy as np
+
     points = [(it, v) for it, v in zip(iterations, values) if v is not None and math.isfinite(v)]
-    if len(points) < 2:
+    if len(points) < 4:
         return None
-    last_it, last_v = points[-1]
-    cut = last_it - tail * (last_it - points[0][0])
-    before = [v for it, v in points if it <= cut]
-    span = max(v for _, v in points) - min(v for _, v in points)
-    if not before or span <= 0:
+    t = np.array([p[0] for p in points], np.float64)
+    v = np.array([p[1] for p in points], np.float64)
+    t = t - t[0]
+    span = float(t[-1])
+    if span <= 0:
         return None
-    return abs(last_v - before[-1]) / span
+    def fit(tau):
+        basis = np.stack([np.ones_like(t), np.exp(-t / tau)], axis=1)
+        coef, *_ = np.linalg.lstsq(basis, v, rcond=None)
+        return float(np.sum((basis @ coef - v) ** 2)), tau, coef
+
+    grid = np.geomspace(span / 50.0, 10.0 * span, 200)
+    best = min((fit(tau) for tau in grid), key=lambda r: r[0])
+    ratio = grid[1] / grid[0]                      # refine between the best point's neighbours
+    best = min((fit(tau) for tau in np.geomspace(best[1] / ratio, best[1] * ratio, 200)), key=lambda r: r[0])
+    _, tau, (plateau, amplitude) = best
+    start, end = plateau + amplitude, plateau + amplitude * math.exp(-span / tau)
+    if abs(plateau - start) < 1e-9:
+        return None
+    return {"plateau": float(plateau), "end": float(end), "remaining": float(plateau - end),
+            "share": float((plateau - end) / (plateau - start)), "tau": float(tau)}
+
+
+def convergence_note(fit: dict) -> str:
+    """One line for a fitted in-mask curve: converged or not, and what is left."""
+    verdict = "converged" if fit["share"] <= 0.1 else "NOT converged"
+    return (f"{verdict}: {fit['remaining']:+.1f} dB to the fitted plateau {fit['plateau']:.1f} dB "
+            f"({fit['share']:.0%} of the change)")
 
 
 def write_convergence(rows, out_dir: Path) -> list[str]:
@@ -66,9 +94,10 @@ def write_convergence(rows, out_dir: Path) -> list[str]:
         nan = [math.nan if v is None else v for v in conv["psnr_in"]]
         ax.plot(it, nan, "-o", ms=2, label="in mask vs GT edit")
         ax.plot(it, [math.nan if v is None else v for v in conv["psnr_out"]], "--", label="outside vs original")
-        share = late_change_share(it, conv["psnr_in"])
-        ax.set_title(name + ("" if share is None else f"\nlast 10% of iterations: {share:.0%} of the change"),
-                     fontsize=8)
+        fit = remaining_change(it, conv["psnr_in"])
+        if fit is not None:
+            ax.axhline(fit["plateau"], color="tab:blue", lw=0.6, ls=":")
+        ax.set_title(name + ("" if fit is None else "\n" + convergence_note(fit)), fontsize=8)
         ax.set_xlabel("iteration")
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(panels):]:

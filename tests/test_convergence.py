@@ -7,7 +7,7 @@ import torch
 
 from dualnerf.cameras import pixel_rays
 from dualnerf.convergence import ConvergenceProbe, downsample, masked_psnr, probe_for_scene_edit
-from stages.report_convergence import late_change_share
+from stages.report_convergence import remaining_change
 from tests.test_edit_idu import SNOW, make_idu, small  # noqa: F401  (fixture)
 
 
@@ -65,13 +65,24 @@ def test_probing_does_not_change_the_run_and_resumes_exactly(small, tmp_path):  
     assert resumed.curves_json()["convergence"] == conv
 
 
-def test_late_change_share():
-    it = list(range(0, 1001, 100))
-    assert late_change_share(it, [10, 15, 18, 19, 19.5, 19.8, 19.9, 20, 20, 20, 20]) == pytest.approx(0.0)
-    assert late_change_share(it, [10 + i for i in range(11)]) == pytest.approx(0.1)
-    assert late_change_share(it, [10] * 11) is None
-
-
+def test_remaining_change_recovers_a_saturating_curve_and_flags_a_straight_line():
+    it = list(range(0, 1501, 100))
+    saturated = [10 + 8 * (1 - math.exp(-t / 300)) for t in it]        # 5 time constants: exp(-5) left
+    fit = remaining_change(it, saturated)
+    assert fit["plateau"] == pytest.approx(18.0, abs=1e-3)
+    assert fit["share"] == pytest.approx(math.exp(-5), abs=1e-3)
+    assert fit["remaining"] == pytest.approx(8 * math.exp(-5), abs=1e-2)
+    young = [10 + 8 * (1 - math.exp(-t / 1500)) for t in it]           # one time constant: 37% left
+    assert remaining_change(it, young)["share"] == pytest.approx(math.exp(-1), abs=1e-2)
+    line = remaining_change(it, [10 + t / 100 for t in it])
+    assert line["share"] > 0.8 and line["plateau"] > 40                # no plateau in sight
+    falling = remaining_change(it, [29 - 11 * (1 - math.exp(-t / 200)) for t in it])
+    assert falling["plateau"] == pytest.approx(18.0, abs=1e-3) and falling["share"] < 0.01
+    rng = np.random.default_rng(0)
+    noisy = remaining_change(it, [v + rng.normal(0, 0.2) for v in saturated])
+    assert noisy["share"] < 0.1 and abs(noisy["plateau"] - 18) < 0.5
+    assert remaining_change(it, [12.0] * len(it)) is None
+    assert remaining_change(it[:3], saturated[:3]) is None
 def test_report_draws_one_convergence_panel_per_row_with_probe_data(tmp_path):
     import json
 

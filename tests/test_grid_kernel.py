@@ -7,7 +7,7 @@ import torch
 from dualnerf import kernels
 from dualnerf.fields import FieldConfig, RadianceField
 from dualnerf.occupancy import OccupancyGrid
-from dualnerf.rendering import ray_cube_bounds, ray_grid_density, stratified_samples
+from dualnerf.rendering import ray_cube_bounds
 
 pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
                                 reason="no C++ compiler: the fused kernel cannot be built here")
@@ -104,18 +104,44 @@ def test_tables_are_stored_channels_last_and_old_contiguous_states_load():
     assert model.plane_encoding.planes[1].is_contiguous(memory_format=torch.channels_last)
 
 
-def test_proposal_density_kernel_is_bit_for_bit_the_reference(monkeypatch):
+def _sampler_inputs(n=400, seed=8):
     grid = OccupancyGrid(16)
-    grid.density.copy_(torch.rand(16, 16, 16, generator=torch.Generator().manual_seed(8)) * 50)
-    g = torch.Generator().manual_seed(9)
-    origins = torch.randn(500, 3, generator=g) * 2
-    dirs = torch.nn.functional.normalize(-origins + 0.3 * torch.randn(500, 3, generator=g), dim=-1)
-    t, _ = stratified_samples(*ray_cube_bounds(origins, dirs, 0.1, 8.0), 64)
-    fused = ray_grid_density(grid, origins, dirs, t, 0.005)
+    g = torch.Generator().manual_seed(seed)
+    grid.density.copy_(torch.rand(16, 16, 16, generator=g) ** 4 * 400)      # sparse, peaked densities
+    grid.mask.copy_(grid.density > 5.0)
+    origins = torch.randn(n, 3, generator=g) * 2
+    dirs = torch.nn.functional.normalize(-origins + 0.3 * torch.randn(n, 3, generator=g), dim=-1)
+    origins[:40] = torch.nn.functional.normalize(origins[:40], dim=-1) * 3.0     # outside, looking away:
+    dirs[:40] = torch.nn.functional.normalize(origins[:40], dim=-1)              # these miss the cube
+    t_start, t_end = ray_cube_bounds(origins, dirs, 0.1, 8.0)
+    return grid, origins, dirs, t_start, t_end, g
+
+
+@pytest.mark.parametrize("jittered", [False, True])
+def test_fused_sampler_matches_the_torch_reference(monkeypatch, jittered):
+    from dualnerf.rendering import ray_samples
+
+    grid, origins, dirs, t_start, t_end, g = _sampler_inputs()
+    config = FieldConfig(proposal_samples=128)
+    jitter = torch.rand(len(origins), 31, generator=g) if jittered else None
+    t, delta, mask = ray_samples(grid, config, origins, dirs, t_start, t_end, 32, jitter)
     monkeypatch.setenv("DUALNERF_KERNELS", "0")
-    assert kernels.grid_kernel() is None and kernels.kernel_name() == "torch-reference"
-    reference = ray_grid_density(grid, origins, dirs, t, 0.005)
-    assert torch.equal(fused, reference)
+    ref_t, ref_delta, ref_mask = ray_samples(grid, config, origins, dirs, t_start, t_end, 32, jitter)
+    valid = t_end > t_start
+    assert 0 < int(valid.sum()) < len(valid)                  # rays that miss the cube, too
+    # Rounding in the cdf is divided by the pdf of a bin (frac = (u - cdf) / pdf), so edges agree to ~1e-5
+    # of a ray's ~4-unit segment; a wrong bin or quantile would move them by a whole interval (~0.1).
+    torch.testing.assert_close(t, ref_t, atol=1e-4, rtol=0)
+    torch.testing.assert_close(delta, ref_delta, atol=1e-4, rtol=0)
+    # The intervals tile each ray's segment, and the mask is the occupancy of the kernel's own midpoints
+    # (the cells bit for bit the reference's), so it can only differ from the reference's where a
+    # midpoint moved across a cell border by rounding.
+    length = (t_end - t_start).clamp(min=0)
+    torch.testing.assert_close(delta.sum(-1), length, atol=1e-5, rtol=1e-5)
+    points = origins[:, None, :] + t[..., None] * dirs[:, None, :]
+    assert torch.equal(mask, valid[:, None] & grid.occupied(points))
+    assert float((mask != ref_mask).float().mean()) < 1e-3
+    assert float(mask.float().mean()) > 0.05
 
 
 def test_kernels_off_runs_the_reference_encodings(monkeypatch):

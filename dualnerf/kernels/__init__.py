@@ -7,6 +7,12 @@ API:
     fused_pair_features(x, dense_a, planes_a, dense_b, planes_b) -> (F_a detached, F_b)   a DualField's two
         fields in one pass (the index and weight maths shared; f_S, the first, is frozen)
     can_fuse(x, features) -> bool;  can_fuse_pair(x, features) -> bool
+    field_inference(x (M,3), sh (M,S), tables, layers, second=None, blend=(0, 0)) -> (h_sigma (M,), h_color (M,3))
+        without autograd: one field's look-ups and MLPs in one pass, or the dual field's two fused by eqs. 4-5
+        (`second` = f_D's (tables, layers); tables = (dense grids, planes), layers = its 4 nn.Linear)
+    can_infer(x, features) -> bool      field_inference applies (no autograd, 2 features per table)
+    TableGradients(tables)              persistent gradient buffers + touched-chunk flags that the look-up
+        kernels' backward fills inside `with table_gradients.collect():` (consumed by dualnerf.optim.FieldAdam)
 
 Why: a field evaluation reads 13 feature tables (4 dense grids, 9 planes). Through F.grid_sample that is
 13 calls with a (C, M) intermediate, a transpose and a concatenation each; the profile
@@ -25,6 +31,7 @@ import logging
 import os
 import subprocess
 import threading
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -63,6 +70,59 @@ def kernel_name() -> str:
     return "fused-cpp" if grid_kernel() is not None else "torch-reference"
 
 
+class TableGradients:
+    """Persistent gradient buffers for feature tables, which the kernels' backward fills instead of
+    handing autograd freshly zero-filled (M-entry) gradients, with a flag per chunk of 16 values saying
+    which chunks a batch touched. dualnerf.optim.FieldAdam updates the touched chunks only and zeroes them
+    again, so a training step costs in proportion to what its rays touch, not to the 13M table entries
+    (benchmarks.profile_edit: the dense zero fill and optimiser pass were a quarter of a step).
+
+    Used by a trainer: `with table_gradients.collect(): <forward>`; a forward of the fused look-up kernels
+    inside it whose trainable tables are all registered here sends their gradients here (p.grad stays
+    None); any other forward uses autograd as usual. The gradients are the same bits either way."""
+
+    CHUNK = 16
+
+    def __init__(self, tables):
+        self.buffers = {id(t): (t, torch.zeros_like(t, memory_format=torch.preserve_format),
+                                torch.zeros(-(-t.numel() // self.CHUNK), dtype=torch.uint8)) for t in tables}
+
+    def holds(self, tables) -> bool:
+        return bool(tables) and all(id(t) in self.buffers for t in tables)
+
+    def gradient(self, table) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """(buffer, touched flags) of a registered table, else None."""
+        entry = self.buffers.get(id(table))
+        return None if entry is None else entry[1:]
+
+    def add(self, x, grad, dense, planes) -> None:
+        tables = [*dense, *planes]
+        grid_kernel().encode_backward_into(x, grad, list(dense), list(planes),
+                                           [self.buffers[id(t)][1] for t in tables],
+                                           [self.buffers[id(t)][2] for t in tables])
+
+    def clear(self) -> None:
+        for _, buffer, touched in self.buffers.values():
+            grid_kernel().zero_touched(buffer, touched)
+
+    @contextmanager
+    def collect(self):
+        previous = getattr(_collector, "sink", None)
+        _collector.sink = self
+        try:
+            yield self
+        finally:
+            _collector.sink = previous
+
+
+_collector = threading.local()
+
+
+def _sink_for(tables) -> TableGradients | None:
+    sink = getattr(_collector, "sink", None)
+    return sink if sink is not None and sink.holds(tables) else None
+
+
 class _FusedGridFeatures(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, n_dense, *tables):
@@ -70,14 +130,18 @@ class _FusedGridFeatures(torch.autograd.Function):
         dense, planes = list(tables[:n_dense]), list(tables[n_dense:])
         ctx.save_for_backward(x, *tables)
         ctx.n_dense = n_dense
+        ctx.sink = _sink_for(tables)
         return module.encode_forward(x, dense, planes)
 
     @staticmethod
     def backward(ctx, grad):
         x, *tables = ctx.saved_tensors
         n = ctx.n_dense
-        grads = grid_kernel().encode_backward(x, grad, list(tables[:n]), list(tables[n:]))
         # No gradient for the sample positions: they come from rays, which are never trained.
+        if ctx.sink is not None:
+            ctx.sink.add(x, grad, tables[:n], tables[n:])
+            return (None, None, *([None] * len(tables)))
+        grads = grid_kernel().encode_backward(x, grad, list(tables[:n]), list(tables[n:]))
         return (None, None, *grads)
 
 
@@ -92,12 +156,16 @@ class _FusedPairFeatures(torch.autograd.Function):
         ctx.mark_non_differentiable(out_first)
         ctx.save_for_backward(x, *second)
         ctx.n_dense, ctx.n_tables = n_dense, n_tables
+        ctx.sink = _sink_for(second)
         return out_first, out_second
 
     @staticmethod
     def backward(ctx, grad_first, grad_second):
         x, *second = ctx.saved_tensors
         n = ctx.n_dense
+        if ctx.sink is not None:
+            ctx.sink.add(x, grad_second, second[:n], second[n:])
+            return (None, None, None, *([None] * (2 * ctx.n_tables)))
         grads = grid_kernel().encode_backward(x, grad_second, list(second[:n]), list(second[n:]))
         return (None, None, None, *([None] * ctx.n_tables), *grads)
 
@@ -121,6 +189,50 @@ def fused_grid_features(x: torch.Tensor, dense_grids, planes) -> torch.Tensor:
         raise ValueError("fused_grid_features: no gradient w.r.t. the sample positions; use the reference "
                          "encodings (dualnerf.encoding) when x requires grad")
     return _FusedGridFeatures.apply(x, len(dense_grids), *dense_grids, *planes)
+
+
+def _layer_tensors(layers) -> list[torch.Tensor]:
+    """(W^T zero-padded to (in, 16k), bias zero-padded to 16k) per nn.Linear: the inference kernel's layout."""
+    out = []
+    for layer in layers:
+        n_out, n_in = layer.weight.shape
+        padded = -(-n_out // 16) * 16
+        weight_t = layer.weight.new_zeros(n_in, padded)
+        weight_t[:, :n_out] = layer.weight.detach().t()
+        bias = layer.bias.new_zeros(padded)
+        bias[:n_out] = layer.bias.detach()
+        out += [weight_t, bias]
+    return out
+
+
+def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=None,
+                    blend: tuple[float, float] = (0.0, 0.0)) -> tuple[torch.Tensor, torch.Tensor]:
+    """(h_sigma, h_color) of one field at points x with per-point direction SH features `sh`, computed block
+    by block in cache (look-ups, both MLPs) instead of through torch's (M, width) intermediates. `tables` =
+    (dense grids, planes) and `layers` = (density hidden, density out, colour hidden, colour out) nn.Linear.
+    With `second` = (tables, layers) of f_D: the dual field, h = (1 - w) h_S + w h_D with blend = (w_density,
+    w_color) (eqs. 4-5). Agrees with the torch path (features(), heads()) to float32 rounding; one
+    sample's result does not depend on the others, the block size or the thread count."""
+    if torch.is_grad_enabled():
+        raise ValueError("field_inference: inference only; run under torch.no_grad()")
+    dense, planes = tables
+    second_dense, second_planes, second_layers = [], [], []
+    if second is not None:
+        (second_dense, second_planes), second_layers = second[0], _layer_tensors(second[1])
+    return tuple(grid_kernel().field_inference(
+        x, sh, list(dense), list(planes), _layer_tensors(layers), list(second_dense), list(second_planes),
+        second_layers, float(blend[0]), float(blend[1]), _vector_path()))
+
+
+def _vector_path() -> bool:
+    """The AVX-512 layer code where the CPU has it (DUALNERF_KERNEL_VECTOR=0: the portable code, for tests;
+    both give the same bits)."""
+    return os.environ.get("DUALNERF_KERNEL_VECTOR", "1") != "0"
+
+
+def can_infer(x: torch.Tensor, features: int) -> bool:
+    """field_inference applies: as can_fuse with 2 features per table, and autograd off."""
+    return features == 2 and not torch.is_grad_enabled() and can_fuse(x, features)
 
 
 def can_fuse(x: torch.Tensor, features: int) -> bool:

@@ -16,6 +16,11 @@
 #include <cmath>
 #include <vector>
 
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <immintrin.h>
+#define DUALNERF_HAVE_AVX512 1   // compiled in with a target attribute; used where the CPU has it
+#endif
+
 namespace {
 
 struct Axis {
@@ -126,24 +131,24 @@ inline void corners(const Table& t, const float* x, Visit&& visit) {
 // parameter so the per-corner channel loop unrolls.
 template <int C>
 void forward_table(const Table& t, const float* table, const float* xp, float* op, int64_t n_out, int64_t begin,
-                   int64_t end) {
+                   int64_t end, int64_t row0 = 0) {
   for (int64_t i = begin; i < end; ++i) {
     float acc[C] = {};
     corners(t, xp + 3 * i, [&](int64_t offset, float w) {
       for (int j = 0; j < C; ++j) acc[j] += w * table[offset + j];
     });
-    float* oi = op + n_out * i + t.column;
+    float* oi = op + n_out * (i - row0) + t.column;
     for (int j = 0; j < C; ++j) oi[j] = acc[j];
   }
 }
 
 void forward_any(const Table& t, const float* table, const float* xp, float* op, int64_t n_out, int64_t begin,
-                 int64_t end) {
+                 int64_t end, int64_t row0 = 0) {
   switch (t.channels) {
-    case 1: return forward_table<1>(t, table, xp, op, n_out, begin, end);
-    case 2: return forward_table<2>(t, table, xp, op, n_out, begin, end);
-    case 4: return forward_table<4>(t, table, xp, op, n_out, begin, end);
-    case 8: return forward_table<8>(t, table, xp, op, n_out, begin, end);
+    case 1: return forward_table<1>(t, table, xp, op, n_out, begin, end, row0);
+    case 2: return forward_table<2>(t, table, xp, op, n_out, begin, end, row0);
+    case 4: return forward_table<4>(t, table, xp, op, n_out, begin, end, row0);
+    case 8: return forward_table<8>(t, table, xp, op, n_out, begin, end, row0);
   }
   TORCH_CHECK(false, "grid encoding kernel: features per table must be 1, 2, 4 or 8");
 }
@@ -173,15 +178,15 @@ torch::Tensor encode_forward(torch::Tensor x, std::vector<torch::Tensor> dense, 
 // bit for bit (the same operations per field in the same order).
 template <int C>
 void forward_table_pair(const Table& t, const float* table_a, const float* table_b, const float* xp, float* oa,
-                        float* ob, int64_t n_out, int64_t begin, int64_t end) {
+                        float* ob, int64_t n_out, int64_t begin, int64_t end, int64_t row0 = 0) {
   for (int64_t i = begin; i < end; ++i) {
     float acc_a[C] = {}, acc_b[C] = {};
     corners(t, xp + 3 * i, [&](int64_t offset, float w) {
       for (int j = 0; j < C; ++j) acc_a[j] += w * table_a[offset + j];
       for (int j = 0; j < C; ++j) acc_b[j] += w * table_b[offset + j];
     });
-    for (int j = 0; j < C; ++j) oa[n_out * i + t.column + j] = acc_a[j];
-    for (int j = 0; j < C; ++j) ob[n_out * i + t.column + j] = acc_b[j];
+    for (int j = 0; j < C; ++j) oa[n_out * (i - row0) + t.column + j] = acc_a[j];
+    for (int j = 0; j < C; ++j) ob[n_out * (i - row0) + t.column + j] = acc_b[j];
   }
 }
 
@@ -244,54 +249,490 @@ std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_o
   return grads;
 }
 
+// The backward of encode_forward into persistent gradient buffers (dualnerf.kernels.TableGradients)
+// instead of freshly zero-filled tensors: adds w * grad_out to grads[k] (as encode_backward, in the same
+// order, so a zeroed buffer ends up with the same bits) and flags every touched chunk of kTouchChunk
+// values in touched[k], for adam_step_touched. Chunks never straddle a corner's features (1, 2, 4 or
+// 8 values at an offset that is a multiple of their count).
+constexpr int64_t kTouchChunk = 16;
 
-// Occupancy-grid density along rays (the proposal's cheap density estimate, dualnerf.rendering):
-// out[r, s] = scale * density[cell(o_r + t[r, s] d_r)], cell() as OccupancyGrid.cell_index. The same
-// rounded float operations as the torch reference (mul, add; (x + 1) * (0.5 r)), built with
-// -ffp-contract=off, and an equivalent integer step (below), so the cells and hence the result are
-// bit-for-bit those of the reference.
-torch::Tensor ray_grid_density(torch::Tensor origins, torch::Tensor dirs, torch::Tensor t, torch::Tensor density,
-                               double scale) {
-  TORCH_CHECK(origins.scalar_type() == torch::kFloat32 && dirs.scalar_type() == torch::kFloat32 &&
-                  t.scalar_type() == torch::kFloat32 && density.scalar_type() == torch::kFloat32,
-              "ray_grid_density: float32 tensors expected");
-  origins = origins.contiguous();
-  dirs = dirs.contiguous();
-  t = t.contiguous();
-  density = density.contiguous();
-  const int64_t n_rays = t.size(0), n_samples = t.size(1), r = density.size(0);
-  TORCH_CHECK(density.dim() == 3 && density.size(1) == r && density.size(2) == r, "density must be (R, R, R)");
-  auto out = torch::empty({n_rays, n_samples}, t.options());
-  const float* op = origins.data_ptr<float>();
-  const float* dp = dirs.data_ptr<float>();
-  const float* tp = t.data_ptr<float>();
-  const float* grid = density.data_ptr<float>();
-  float* outp = out.data_ptr<float>();
-  const float half_r = 0.5f * static_cast<float>(r), top = static_cast<float>(r - 1), fscale = static_cast<float>(scale);
-  at::parallel_for(0, n_rays, 64, [&](int64_t begin, int64_t end) {
-    for (int64_t i = begin; i < end; ++i) {
-      const float* o = op + 3 * i;
-      const float* d = dp + 3 * i;
-      for (int64_t s = 0; s < n_samples; ++s) {
-        const float ts = tp[i * n_samples + s];
-        int64_t cell[3];
-        for (int a = 0; a < 3; ++a) {
-          const float x = o[a] + ts * d[a];
-          // floor, then clamp to [0, r - 1] (the reference's order) equals clamp, then truncate: both send
-          // every negative value to 0. Truncation avoids std::floor's library call. NaN -> cell 0.
-          const float c = (x + 1.0f) * half_r;
-          cell[a] = static_cast<int64_t>(std::min(c > 0.0f ? c : 0.0f, top));
-        }
-        outp[i * n_samples + s] = fscale * grid[(cell[0] * r + cell[1]) * r + cell[2]];
+void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
+                          std::vector<torch::Tensor> planes, std::vector<torch::Tensor> grads,
+                          std::vector<torch::Tensor> touched) {
+  x = x.contiguous();
+  grad_out = grad_out.contiguous();
+  const auto tables = describe(dense, planes);
+  const int64_t m = x.size(0), n_out = total_columns(tables);
+  TORCH_CHECK(grad_out.size(0) == m && grad_out.size(1) == n_out, "grad_out must be (M, total features)");
+  TORCH_CHECK(grads.size() == tables.size() && touched.size() == tables.size(), "one buffer per table expected");
+  std::vector<torch::Tensor> layout = channels_last(dense, true);
+  for (auto& p : channels_last(planes, false)) layout.push_back(p);
+  for (size_t k = 0; k < tables.size(); ++k) {
+    TORCH_CHECK(grads[k].scalar_type() == torch::kFloat32 && grads[k].strides() == layout[k].strides() &&
+                    grads[k].sizes() == layout[k].sizes(),
+                "gradient buffers must be float32 and laid out like their (channels-last) table");
+    TORCH_CHECK(touched[k].scalar_type() == torch::kUInt8 && touched[k].is_contiguous() &&
+                    touched[k].numel() == (grads[k].numel() + kTouchChunk - 1) / kTouchChunk,
+                "touched flags must be uint8, one per ", kTouchChunk, " gradient values");
+  }
+  const float* xp = x.data_ptr<float>();
+  const float* gp = grad_out.data_ptr<float>();
+  at::parallel_for(0, static_cast<int64_t>(tables.size()), 1, [&](int64_t begin, int64_t end) {
+    for (int64_t k = begin; k < end; ++k) {
+      const Table& t = tables[k];
+      float* grad = grads[k].data_ptr<float>();
+      uint8_t* flags = touched[k].data_ptr<uint8_t>();
+      const int64_t c = t.channels;
+      for (int64_t i = 0; i < m; ++i) {
+        const float* go = gp + n_out * i + t.column;
+        corners(t, xp + 3 * i, [&](int64_t offset, float w) {
+          for (int64_t j = 0; j < c; ++j) grad[offset + j] += w * go[j];
+          flags[offset / kTouchChunk] = 1;
+        });
       }
     }
   });
-  return out;
+}
+
+
+// Zeroes the flagged chunks of a gradient buffer and their flags (a TableGradients reset).
+void zero_touched(torch::Tensor grad, torch::Tensor touched) {
+  TORCH_CHECK(grad.scalar_type() == torch::kFloat32 && grad.is_non_overlapping_and_dense() &&
+                  touched.scalar_type() == torch::kUInt8 && touched.numel() == (grad.numel() + kTouchChunk - 1) / kTouchChunk,
+              "zero_touched: a float32 buffer and one uint8 flag per ", kTouchChunk, " values expected");
+  float* g = grad.data_ptr<float>();
+  uint8_t* flags = touched.data_ptr<uint8_t>();
+  const int64_t n = grad.numel();
+  for (int64_t c = 0; c < touched.numel(); ++c) {
+    if (!flags[c]) continue;
+    std::fill(g + c * kTouchChunk, g + std::min(n, (c + 1) * kTouchChunk), 0.0f);
+    flags[c] = 0;
+  }
+}
+
+// ---- Inference: look-ups and both MLPs of a field in one pass (renders, no autograd) ----
+//
+// A render evaluates millions of samples without gradients. Through torch, every MLP layer streams its
+// (M, 64) activations through memory several times (bias copy, matmul, ReLU, concatenation, block
+// copies: ~40% of a render in the profile). Here a block of kInferBlock samples goes through the
+// look-ups and all four layers while it stays in cache, and only (h_sigma, h_color) are written.
+//
+// A layer is y = b + sum_k x_k W[:, k] (nn.Linear), accumulated as a chain of fused multiply-adds in k
+// order starting from the bias, on the AVX-512 path and the portable path alike (std::fma rounds
+// exactly like the vector instruction): a sample's result does not depend on the path, its block, its
+// neighbours or the thread count. It agrees with torch's matmul to float32 rounding, not bit for bit.
+
+namespace {
+
+constexpr int64_t kInferBlock = 128;
+constexpr int kLanes = 16;   // floats per AVX-512 vector; layer widths are padded to a multiple of this
+
+struct Layer {
+  const float* wt;   // (in, out_pad) row-major: W transposed, zero-padded columns
+  const float* b;    // (out_pad), zero-padded
+  int in, out, out_pad;
+};
+
+// Rows [0, rows) of out = relu?(in @ wt + b), portable code.
+void layer_rows_portable(const Layer& l, const float* in, int64_t ld_in, int64_t rows, float* out, int64_t ld_out,
+                         bool relu) {
+  for (int64_t r = 0; r < rows; ++r) {
+    const float* x = in + r * ld_in;
+    float* y = out + r * ld_out;
+    for (int j = 0; j < l.out; ++j) {
+      float acc = l.b[j];
+      for (int k = 0; k < l.in; ++k) acc = std::fma(x[k], l.wt[k * l.out_pad + j], acc);
+      y[j] = relu ? (acc > 0.0f ? acc : 0.0f) : acc;
+    }
+  }
+}
+
+#ifdef DUALNERF_HAVE_AVX512
+
+// RB rows x NV vectors of outputs held in registers; each weight vector is loaded once per k and reused
+// for the RB rows.
+template <int NV, int RB>
+__attribute__((target("avx512f"))) inline void layer_tile_avx512(const Layer& l, const float* in, int64_t ld_in,
+                                                                 float* out, int64_t ld_out, bool relu) {
+  __m512 acc[RB][NV];
+  for (int v = 0; v < NV; ++v) {
+    const __m512 bias = _mm512_loadu_ps(l.b + kLanes * v);
+    for (int r = 0; r < RB; ++r) acc[r][v] = bias;
+  }
+  for (int k = 0; k < l.in; ++k) {
+    __m512 w[NV];
+    for (int v = 0; v < NV; ++v) w[v] = _mm512_loadu_ps(l.wt + k * l.out_pad + kLanes * v);
+    for (int r = 0; r < RB; ++r) {
+      const __m512 x = _mm512_set1_ps(in[r * ld_in + k]);
+      for (int v = 0; v < NV; ++v) acc[r][v] = _mm512_fmadd_ps(x, w[v], acc[r][v]);
+    }
+  }
+  const __m512 zero = _mm512_setzero_ps();
+  for (int r = 0; r < RB; ++r)
+    for (int v = 0; v < NV; ++v) {
+      const __m512 y = relu ? _mm512_max_ps(acc[r][v], zero) : acc[r][v];
+      const int left = l.out - kLanes * v;
+      const __mmask16 mask = left >= kLanes ? static_cast<__mmask16>(0xFFFF)
+                                            : static_cast<__mmask16>((1u << (left > 0 ? left : 0)) - 1u);
+      _mm512_mask_storeu_ps(out + r * ld_out + kLanes * v, mask, y);
+    }
+}
+
+template <int NV>
+__attribute__((target("avx512f"))) void layer_rows_avx512(const Layer& l, const float* in, int64_t ld_in,
+                                                          int64_t rows, float* out, int64_t ld_out, bool relu) {
+  constexpr int RB = NV >= 4 ? 4 : 8;
+  int64_t r = 0;
+  for (; r + RB <= rows; r += RB) layer_tile_avx512<NV, RB>(l, in + r * ld_in, ld_in, out + r * ld_out, ld_out, relu);
+  for (; r < rows; ++r) layer_tile_avx512<NV, 1>(l, in + r * ld_in, ld_in, out + r * ld_out, ld_out, relu);
+}
+
+bool avx512_available() { return __builtin_cpu_supports("avx512f"); }
+#else
+bool avx512_available() { return false; }
+#endif
+
+void layer_rows(const Layer& l, const float* in, int64_t ld_in, int64_t rows, float* out, int64_t ld_out, bool relu,
+                bool vector_path) {
+#ifdef DUALNERF_HAVE_AVX512
+  if (vector_path) {
+    switch (l.out_pad / kLanes) {
+      case 1: return layer_rows_avx512<1>(l, in, ld_in, rows, out, ld_out, relu);
+      case 2: return layer_rows_avx512<2>(l, in, ld_in, rows, out, ld_out, relu);
+      case 4: return layer_rows_avx512<4>(l, in, ld_in, rows, out, ld_out, relu);
+      case 8: return layer_rows_avx512<8>(l, in, ld_in, rows, out, ld_out, relu);
+    }
+  }
+#endif
+  layer_rows_portable(l, in, ld_in, rows, out, ld_out, relu);
+}
+
+// A field's density MLP (features -> hidden -> [h_sigma, geo]) and colour MLP ([geo, sh] -> hidden -> rgb).
+struct FieldMlps {
+  Layer layer[4];
+  int n_sh;
+};
+
+FieldMlps describe_mlps(const std::vector<torch::Tensor>& t, int64_t n_features, int64_t n_sh) {
+  TORCH_CHECK(t.size() == 8, "field_inference: 8 MLP tensors expected (wt, b for 4 layers)");
+  FieldMlps m;
+  const int64_t outs[4] = {-1, -1, -1, 3};
+  for (int i = 0; i < 4; ++i) {
+    const auto& wt = t[2 * i];
+    const auto& b = t[2 * i + 1];
+    TORCH_CHECK(wt.dim() == 2 && wt.is_contiguous() && wt.scalar_type() == torch::kFloat32 && b.dim() == 1 &&
+                    b.is_contiguous() && b.size(0) == wt.size(1) && wt.size(1) % kLanes == 0,
+                "field_inference: layer weights must be contiguous float32 (in, out padded to 16) with a bias");
+    m.layer[i] = {wt.data_ptr<float>(), b.data_ptr<float>(), static_cast<int>(wt.size(0)),
+                  static_cast<int>(outs[i] > 0 ? outs[i] : wt.size(1)), static_cast<int>(wt.size(1))};
+  }
+  m.layer[0].out = m.layer[1].in;           // hidden width
+  m.layer[2].out = m.layer[3].in;
+  m.layer[1].out = m.layer[2].in - static_cast<int>(n_sh) + 1;   // 1 + geo features
+  m.n_sh = static_cast<int>(n_sh);
+  TORCH_CHECK(m.layer[0].in == n_features, "field_inference: first layer takes ", m.layer[0].in,
+              " features, the tables give ", n_features);
+  TORCH_CHECK(m.layer[1].out >= 1 && m.layer[1].out <= m.layer[1].out_pad && m.layer[0].out <= m.layer[0].out_pad &&
+                  m.layer[2].out <= m.layer[2].out_pad,
+              "field_inference: inconsistent MLP shapes");
+  return m;
+}
+
+struct Scratch {
+  std::vector<float> hidden, density_out, color_in, rgb;
+  explicit Scratch(const FieldMlps& m)
+      : hidden(kInferBlock * std::max(m.layer[0].out_pad, m.layer[2].out_pad)),
+        density_out(kInferBlock * m.layer[1].out_pad), color_in(kInferBlock * m.layer[2].in),
+        rgb(kInferBlock * m.layer[3].out_pad) {}
+};
+
+// (h_sigma, h_color) of `rows` samples from their features and direction SH features.
+void field_mlps(const FieldMlps& m, const float* features, int64_t ld_features, const float* sh, int64_t rows,
+                Scratch& s, float* h_sigma, float* h_color, bool vector_path) {
+  const Layer* l = m.layer;
+  const int64_t ld_h = std::max(l[0].out_pad, l[2].out_pad), ld_d = l[1].out_pad, ld_c = l[2].in;
+  layer_rows(l[0], features, ld_features, rows, s.hidden.data(), ld_h, true, vector_path);
+  layer_rows(l[1], s.hidden.data(), ld_h, rows, s.density_out.data(), ld_d, false, vector_path);
+  const int geo = l[1].out - 1;
+  for (int64_t r = 0; r < rows; ++r) {
+    float* c = s.color_in.data() + r * ld_c;
+    const float* d = s.density_out.data() + r * ld_d;
+    h_sigma[r] = d[0];
+    std::copy(d + 1, d + 1 + geo, c);
+    std::copy(sh + r * m.n_sh, sh + (r + 1) * m.n_sh, c + geo);
+  }
+  layer_rows(l[2], s.color_in.data(), ld_c, rows, s.hidden.data(), ld_h, true, vector_path);
+  layer_rows(l[3], s.hidden.data(), ld_h, rows, s.rgb.data(), l[3].out_pad, false, vector_path);
+  for (int64_t r = 0; r < rows; ++r)
+    for (int j = 0; j < 3; ++j) h_color[3 * r + j] = s.rgb[r * l[3].out_pad + j];
+}
+
+}  // namespace
+
+// One field (dense_b empty) or the dual field: h = (1 - w) h_S + w h_D per output (eqs. 4-5), with
+// a = f_S and b = f_D. Returns (h_sigma (M,), h_color (M, 3)).
+std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, std::vector<torch::Tensor> dense_a,
+                                           std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> mlp_a,
+                                           std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b,
+                                           std::vector<torch::Tensor> mlp_b, double w_density, double w_color,
+                                           bool vector_path) {
+  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32, "x must be (M, 3) float32");
+  TORCH_CHECK(sh.dim() == 2 && sh.size(0) == x.size(0) && sh.scalar_type() == torch::kFloat32,
+              "sh must be (M, S) float32");
+  x = x.contiguous();
+  sh = sh.contiguous();
+  const bool dual = !dense_b.empty();
+  const auto tables = describe(dense_a, planes_a);
+  for (const auto& t : tables)
+    TORCH_CHECK(t.channels == 2, "field_inference: the fused inference path needs 2 features per table");
+  if (dual) {
+    const auto tables_b = describe(dense_b, planes_b);
+    TORCH_CHECK(tables.size() == tables_b.size(), "the two fields must have the same tables");
+    for (size_t k = 0; k < tables.size(); ++k)
+      TORCH_CHECK(tables[k].res == tables_b[k].res && tables_b[k].channels == 2, "the two fields must have the same tables");
+  }
+  std::vector<torch::Tensor> keep;
+  const auto data_a = table_data(dense_a, planes_a, keep);
+  const auto data_b = dual ? table_data(dense_b, planes_b, keep) : std::vector<const float*>{};
+  const int64_t m = x.size(0), n_features = total_columns(tables), n_sh = sh.size(1);
+  const FieldMlps mlps_a = describe_mlps(mlp_a, n_features, n_sh);
+  const FieldMlps mlps_b = dual ? describe_mlps(mlp_b, n_features, n_sh) : mlps_a;
+  if (dual)
+    for (int i = 0; i < 4; ++i)
+      TORCH_CHECK(mlps_b.layer[i].in == mlps_a.layer[i].in && mlps_b.layer[i].out_pad == mlps_a.layer[i].out_pad,
+                  "the two fields must have the same MLP shapes");
+  auto h_sigma = torch::empty({m}, x.options());
+  auto h_color = torch::empty({m, 3}, x.options());
+  const float *xp = x.data_ptr<float>(), *shp = sh.data_ptr<float>();
+  float *sp = h_sigma.data_ptr<float>(), *cp = h_color.data_ptr<float>();
+  // The coefficients rounded to float as torch rounds a Python scalar: (1 - w) in double first.
+  const float wd = static_cast<float>(w_density), wc = static_cast<float>(w_color);
+  const float keep_d = static_cast<float>(1.0 - w_density), keep_c = static_cast<float>(1.0 - w_color);
+  const bool vec = vector_path && avx512_available();
+  const int64_t n_blocks = (m + kInferBlock - 1) / kInferBlock;
+  at::parallel_for(0, n_blocks, 1, [&](int64_t block_begin, int64_t block_end) {
+    Scratch scratch(mlps_a);
+    std::vector<float> feat_a(kInferBlock * n_features), feat_b(dual ? kInferBlock * n_features : 0);
+    std::vector<float> sigma_b(dual ? kInferBlock : 0), color_b(dual ? 3 * kInferBlock : 0);
+    for (int64_t blk = block_begin; blk < block_end; ++blk) {
+      const int64_t begin = blk * kInferBlock, end = std::min(m, begin + kInferBlock), rows = end - begin;
+      for (size_t k = 0; k < tables.size(); ++k) {
+        if (dual)
+          forward_table_pair<2>(tables[k], data_a[k], data_b[k], xp, feat_a.data(), feat_b.data(), n_features, begin,
+                                end, begin);
+        else
+          forward_table<2>(tables[k], data_a[k], xp, feat_a.data(), n_features, begin, end, begin);
+      }
+      float* sig = sp + begin;
+      float* col = cp + 3 * begin;
+      field_mlps(mlps_a, feat_a.data(), n_features, shp + begin * n_sh, rows, scratch, sig, col, vec);
+      if (!dual) continue;
+      field_mlps(mlps_b, feat_b.data(), n_features, shp + begin * n_sh, rows, scratch, sigma_b.data(),
+                 color_b.data(), vec);
+      // Eqs. 4-5 in the order of dualnerf.dual_field._fuse: (1 - w) * h_S + w * h_D.
+      for (int64_t r = 0; r < rows; ++r) sig[r] = keep_d * sig[r] + wd * sigma_b[r];
+      for (int64_t r = 0; r < 3 * rows; ++r) col[r] = keep_c * col[r] + wc * color_b[r];
+    }
+  });
+  return {h_sigma, h_color};
+}
+
+bool vector_path_available() { return avx512_available(); }
+
+
+
+
+// ---- Adam for the trainer (dualnerf.optim): one pass per tensor, optionally skipping zero gradients ----
+//
+// The same rounded float operations, in the same order, as dualnerf.optim.adam_reference (built with
+// -ffp-contract=off, so no fused multiply-adds), hence bit-for-bit its result:
+//   m = b1 m + (1 - b1) g;  v = b2 v + (1 - b2) g g;  p = p - step_size (m / (sqrt(v) / bc2_sqrt + eps)).
+// skip_zero: entries whose gradient is exactly 0 keep p, m and v (instant-NGP's rule for feature tables:
+// a batch touches a small part of a table, and the dense update of every entry was memory-bound).
+void check_adam_tensors(const torch::Tensor& param, const torch::Tensor& grad, const torch::Tensor& exp_avg,
+                        const torch::Tensor& exp_avg_sq) {
+  for (const auto* t : {&param, &grad, &exp_avg, &exp_avg_sq})
+    TORCH_CHECK(t->scalar_type() == torch::kFloat32 && t->device().is_cpu() && t->numel() == param.numel(),
+                "adam_step: float32 CPU tensors of one size expected");
+  // The optimiser state is allocated like the parameter (same strides); the element-wise update only
+  // needs all four to share one memory layout.
+  TORCH_CHECK(param.strides() == grad.strides() && param.strides() == exp_avg.strides() &&
+                  param.strides() == exp_avg_sq.strides() && param.is_non_overlapping_and_dense(),
+              "adam_step: parameter, gradient and state must share one dense memory layout");
+}
+
+struct AdamUpdate {
+  float b1, b2, one_minus_b1, one_minus_b2, step, bc2, eps;
+  AdamUpdate(double beta1, double beta2, double step_size, double bias_correction2_sqrt, double e)
+      : b1(static_cast<float>(beta1)), b2(static_cast<float>(beta2)), one_minus_b1(static_cast<float>(1.0 - beta1)),
+        one_minus_b2(static_cast<float>(1.0 - beta2)), step(static_cast<float>(step_size)),
+        bc2(static_cast<float>(bias_correction2_sqrt)), eps(static_cast<float>(e)) {}
+  inline void operator()(float& p, float g, float& m, float& v) const {
+    m = b1 * m + one_minus_b1 * g;
+    v = b2 * v + one_minus_b2 * g * g;
+    p = p - step * (m / (std::sqrt(v) / bc2 + eps));
+  }
+};
+
+void adam_step(torch::Tensor param, torch::Tensor grad, torch::Tensor exp_avg, torch::Tensor exp_avg_sq, double beta1,
+               double beta2, double step_size, double bias_correction2_sqrt, double eps, bool skip_zero) {
+  check_adam_tensors(param, grad, exp_avg, exp_avg_sq);
+  const AdamUpdate update(beta1, beta2, step_size, bias_correction2_sqrt, eps);
+  float* p = param.data_ptr<float>();
+  const float* g = grad.data_ptr<float>();
+  float* m = exp_avg.data_ptr<float>();
+  float* v = exp_avg_sq.data_ptr<float>();
+  at::parallel_for(0, param.numel(), 1 << 16, [&](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i)
+      if (!skip_zero || g[i] != 0.0f) update(p[i], g[i], m[i], v[i]);
+  });
+}
+
+// adam_step with skip_zero on the touched chunks of a TableGradients buffer only (an untouched chunk's
+// gradients are all zero, so skip_zero would leave it as it is anyway: the same bits as adam_step), then
+// zeroes those gradients and flags for the next backward.
+void adam_step_touched(torch::Tensor param, torch::Tensor grad, torch::Tensor touched, torch::Tensor exp_avg,
+                       torch::Tensor exp_avg_sq, double beta1, double beta2, double step_size,
+                       double bias_correction2_sqrt, double eps) {
+  check_adam_tensors(param, grad, exp_avg, exp_avg_sq);
+  const int64_t n = param.numel();
+  TORCH_CHECK(touched.scalar_type() == torch::kUInt8 && touched.is_contiguous() &&
+                  touched.numel() == (n + kTouchChunk - 1) / kTouchChunk,
+              "adam_step_touched: one uint8 flag per ", kTouchChunk, " values expected");
+  const AdamUpdate update(beta1, beta2, step_size, bias_correction2_sqrt, eps);
+  float* p = param.data_ptr<float>();
+  float* g = grad.data_ptr<float>();
+  float* m = exp_avg.data_ptr<float>();
+  float* v = exp_avg_sq.data_ptr<float>();
+  uint8_t* flags = touched.data_ptr<uint8_t>();
+  at::parallel_for(0, touched.numel(), 1 << 12, [&](int64_t chunk_begin, int64_t chunk_end) {
+    for (int64_t c = chunk_begin; c < chunk_end; ++c) {
+      if (!flags[c]) continue;
+      const int64_t begin = c * kTouchChunk, end = std::min(n, begin + kTouchChunk);
+      for (int64_t i = begin; i < end; ++i) {
+        if (g[i] != 0.0f) update(p[i], g[i], m[i], v[i]);
+        g[i] = 0.0f;
+      }
+      flags[c] = 0;
+    }
+  });
+}
+
+
+// ---- The render sampler (dualnerf.rendering.ray_samples): proposal intervals + occupancy test per ray ----
+//
+// Per ray, in cache: the proposal (the occupancy grid's scaled density at n_proposal bin centres,
+// composited), its pdf mixed with the uniform share, inverse-transform sampling of the interval edges at
+// the quantiles (i - 0.5 + jitter_i) / S (a merge walk: the quantiles are increasing), and the
+// occupancy mask at the interval midpoints. The same formulas as proposal_intervals and
+// OccupancyGrid.occupied in torch, which stay the reference; they agree to float32 rounding (exp and
+// the sums round differently), and the cells of given points are bit-for-bit the reference's.
+inline int64_t grid_cell(const float* o, const float* d, float t, float half_r, float top, int64_t r) {
+  int64_t cell[3];
+  for (int a = 0; a < 3; ++a) {
+    const float x = o[a] + t * d[a];
+    const float c = (x + 1.0f) * half_r;
+    cell[a] = static_cast<int64_t>(std::min(c > 0.0f ? c : 0.0f, top));
+  }
+  return (cell[0] * r + cell[1]) * r + cell[2];
+}
+
+std::vector<torch::Tensor> ray_samples(torch::Tensor origins, torch::Tensor dirs, torch::Tensor t_start,
+                                       torch::Tensor t_end, torch::Tensor density, torch::Tensor mask, double scale,
+                                       int64_t n_proposal, int64_t n_samples, double uniform_share,
+                                       torch::Tensor jitter) {
+  for (const auto* x : {&origins, &dirs, &t_start, &t_end, &density})
+    TORCH_CHECK(x->scalar_type() == torch::kFloat32 && x->device().is_cpu(), "ray_samples: float32 CPU tensors expected");
+  TORCH_CHECK(mask.scalar_type() == torch::kBool && mask.sizes() == density.sizes(), "ray_samples: bool mask like density");
+  TORCH_CHECK(n_proposal >= 1 && n_samples >= 1, "ray_samples: at least one proposal bin and one sample");
+  origins = origins.contiguous();
+  dirs = dirs.contiguous();
+  t_start = t_start.contiguous();
+  t_end = t_end.contiguous();
+  density = density.contiguous();
+  mask = mask.contiguous();
+  const int64_t n_rays = t_start.size(0), r = density.size(0), S = n_samples, P = n_proposal;
+  const bool jittered = jitter.numel() > 0;
+  if (jittered) {
+    jitter = jitter.contiguous();
+    TORCH_CHECK(jitter.scalar_type() == torch::kFloat32 && jitter.size(0) == n_rays && jitter.size(1) == S - 1,
+                "ray_samples: jitter must be (rays, samples - 1) float32");
+  }
+  auto t = torch::empty({n_rays, S}, t_start.options());
+  auto delta = torch::empty({n_rays, S}, t_start.options());
+  auto occupied = torch::empty({n_rays, S}, mask.options());
+  const float *op = origins.data_ptr<float>(), *dp = dirs.data_ptr<float>(), *sp = t_start.data_ptr<float>(),
+              *ep = t_end.data_ptr<float>(), *grid = density.data_ptr<float>();
+  const float* jp = jittered ? jitter.data_ptr<float>() : nullptr;
+  const bool* mp = mask.data_ptr<bool>();
+  float *tp = t.data_ptr<float>(), *deltap = delta.data_ptr<float>();
+  bool* occp = occupied.data_ptr<bool>();
+  const float half_r = 0.5f * static_cast<float>(r), top = static_cast<float>(r - 1);
+  const float fscale = static_cast<float>(scale);
+  const float keep = static_cast<float>(1.0 - uniform_share);
+  const float uniform_bin = static_cast<float>(uniform_share / static_cast<double>(P));
+  at::parallel_for(0, n_rays, 16, [&](int64_t begin, int64_t end) {
+    std::vector<float> pdf(P), cdf(P + 1), edges(S + 1);
+    for (int64_t i = begin; i < end; ++i) {
+      const float* o = op + 3 * i;
+      const float* d = dp + 3 * i;
+      const float start = sp[i], stop = ep[i];
+      const float length = stop - start > 0.0f ? stop - start : 0.0f;
+      const float step = length / static_cast<float>(P);
+      // Proposal weights w_k = T_k (1 - exp(-tau_k)) of the grid density at the bin centres.
+      float optical = 0.0f, weight_sum = 0.0f;
+      for (int64_t k = 0; k < P; ++k) {
+        const float tc = start + (static_cast<float>(k) + 0.5f) * step;
+        const float tau = fscale * grid[grid_cell(o, d, tc, half_r, top, r)] * step;
+        const float w = std::exp(-optical) * (1.0f - std::exp(-tau));
+        optical += tau;
+        pdf[k] = w;
+        weight_sum += w;
+      }
+      float pdf_sum = 0.0f;
+      for (int64_t k = 0; k < P; ++k) {
+        pdf[k] = keep * pdf[k] / (weight_sum + 1e-6f) + uniform_bin;
+        pdf_sum += pdf[k];
+      }
+      cdf[0] = 0.0f;
+      for (int64_t k = 0; k < P; ++k) {
+        pdf[k] = pdf[k] / pdf_sum;
+        cdf[k + 1] = cdf[k] + pdf[k];
+      }
+      cdf[P] = 1.0f;
+      // Edges at the quantiles u_0 = 0 < u_1 < ... < u_S = 1: bin = the last k with cdf[k] <= u.
+      int64_t bin = 0;
+      edges[0] = start;
+      for (int64_t j = 1; j < S; ++j) {
+        const float offset = jittered ? jp[i * (S - 1) + (j - 1)] : 0.5f;
+        const float u = (static_cast<float>(j) - 0.5f + offset) / static_cast<float>(S);
+        while (bin + 1 < P && cdf[bin + 1] <= u) ++bin;
+        float frac = (u - cdf[bin]) / pdf[bin];
+        frac = std::min(std::max(frac, 0.0f), 1.0f);
+        edges[j] = start + (static_cast<float>(bin) + frac) * step;
+      }
+      edges[S] = stop > start ? stop : start;
+      const bool valid = stop > start;
+      for (int64_t j = 0; j < S; ++j) {
+        const float mid = 0.5f * (edges[j + 1] + edges[j]);
+        tp[i * S + j] = mid;
+        deltap[i * S + j] = edges[j + 1] - edges[j];
+        occp[i * S + j] = valid && mp[grid_cell(o, d, mid, half_r, top, r)];
+      }
+    }
+  });
+  return {t, delta, occupied};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
   module.def("encode_forward", &encode_forward, "fused dense-grid + plane feature look-ups");
-  module.def("ray_grid_density", &ray_grid_density, "occupancy-grid density at ray samples (the proposal)");
   module.def("encode_forward_pair", &encode_forward_pair, "encode_forward for two fields' tables at once");
   module.def("encode_backward", &encode_backward, "gradients of encode_forward w.r.t. the tables");
+  module.def("field_inference", &field_inference, "look-ups and MLPs of one field or the fused dual field");
+  module.def("ray_samples", &ray_samples, "proposal intervals and their occupancy per ray (the render sampler)");
+  module.def("adam_step", &adam_step, "one Adam step on one tensor, optionally skipping zero gradients");
+  module.def("adam_step_touched", &adam_step_touched, "adam_step (skip zero) on the touched chunks of a gradient buffer");
+  module.def("zero_touched", &zero_touched, "zero the flagged chunks of a gradient buffer and the flags");
+  module.def("encode_backward_into", &encode_backward_into, "encode_backward into persistent buffers, flagging touched chunks");
+  module.def("vector_path_available", &vector_path_available, "the AVX-512 MLP path can run on this CPU");
 }

@@ -1,0 +1,105 @@
+"""The fused inference kernel (dualnerf.kernels.field_inference: look-ups + MLPs in one pass, no autograd)
+against the torch path it replaces in renders (features() + heads(), DualField's eqs. 4-5)."""
+import shutil
+
+import pytest
+import torch
+
+from dualnerf import kernels
+from dualnerf.dual_field import DualField
+from dualnerf.fields import FieldConfig, RadianceField
+
+pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
+                                reason="no C++ compiler: the fused kernel cannot be built here")
+
+# Widths that are not multiples of the kernel's 16-float vectors (padding, masked stores) next to the
+# default 64; 131 points leave a partial row tile and a partial block.
+CONFIGS = [FieldConfig(grid_resolutions=(4, 9, 16), plane_resolutions=(8, 32), hidden_width=64),
+           FieldConfig(grid_resolutions=(5, 12), plane_resolutions=(16,), hidden_width=24, geo_features=7,
+                       direction_degree=3)]
+
+
+def field(config, seed) -> RadianceField:
+    model = RadianceField(config, torch.Generator().manual_seed(seed))
+    with torch.no_grad():          # values of order 1 everywhere (the initial 1e-4 grids would hide errors)
+        g = torch.Generator().manual_seed(seed + 1)
+        for p in model.parameters():
+            p.add_(0.5 * torch.randn(p.shape, generator=g))
+    return model
+
+
+def samples(n, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, 3, generator=g) * 2.4 - 1.2          # some outside the cube: border padding
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    return x, d
+
+
+def reference(model, x, d):
+    with torch.no_grad():
+        return model.heads(model.reference_features(x), model.direction_features(d))
+
+
+@pytest.mark.parametrize("config", CONFIGS)
+def test_single_field_inference_matches_features_and_heads(config):
+    model, (x, d) = field(config, 0), samples(3000)
+    with torch.no_grad():
+        assert model.can_infer(x)
+        h_sigma, h_color = model(x, d)
+    ref_sigma, ref_color = reference(model, x, d)
+    assert h_sigma.shape == ref_sigma.shape and h_color.shape == ref_color.shape
+    assert ref_color.abs().max() > 1.0                # non-trivial values
+    torch.testing.assert_close(h_sigma, ref_sigma, atol=2e-5, rtol=1e-5)
+    torch.testing.assert_close(h_color, ref_color, atol=2e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("config", CONFIGS)
+def test_dual_inference_matches_the_autograd_fusion(config):
+    model, (x, d) = DualField(field(config, 0), field(config, 10)), samples(2000, seed=1)
+    expected = model.query(x, d, blend=(0.3, 0.6), retreat=0.5)          # autograd on: torch path
+    with torch.no_grad():
+        fused = model.query(x, d, blend=(0.3, 0.6), retreat=0.5)
+        static = model.static_field(x, d)
+        assert all(torch.equal(a, b) for a, b in zip(model.query(x, d, blend=(0.0, 0.0)), static))
+        full = model.query(x, d, blend=(1.0, 1.0))
+        dynamic = model.dynamic_field(x, d)
+    for got, want in zip(fused, expected):
+        torch.testing.assert_close(got, want.detach(), atol=2e-5, rtol=1e-5)
+    assert all(torch.equal(a, b) for a, b in zip(full, dynamic))      # w = 1: f_D alone, exactly
+
+
+def test_a_samples_result_does_not_depend_on_its_batch_or_threads():
+    model, (x, d) = field(CONFIGS[0], 3), samples(1000, seed=2)
+    with torch.no_grad():
+        whole = model(x, d)
+        order = torch.randperm(len(x), generator=torch.Generator().manual_seed(4))
+        shuffled = model(x[order], d[order])
+        threads = torch.get_num_threads()
+        try:
+            torch.set_num_threads(1 if threads > 1 else 2)
+            other_threads = model(x, d)
+        finally:
+            torch.set_num_threads(threads)
+        part = model(x[7:70], d[7:70])
+    for a, b, c, p in zip(whole, shuffled, other_threads, part):
+        assert torch.equal(a[order], b) and torch.equal(a, c) and torch.equal(a[7:70], p)
+
+
+def test_portable_and_vector_layer_code_give_the_same_bits(monkeypatch):
+    if not kernels.grid_kernel().vector_path_available():
+        pytest.skip("this CPU has no AVX-512: only the portable layer code runs")
+    model, (x, d) = field(CONFIGS[1], 5), samples(777, seed=3)
+    with torch.no_grad():
+        vector = model(x, d)
+        monkeypatch.setenv("DUALNERF_KERNEL_VECTOR", "0")
+        portable = model(x, d)
+    assert all(torch.equal(a, b) for a, b in zip(vector, portable))
+
+
+def test_inference_refuses_autograd_and_is_not_used_for_training():
+    model, (x, d) = field(CONFIGS[0], 6), samples(50)
+    with pytest.raises(ValueError, match="no_grad"):
+        kernels.field_inference(x, model.direction_features(d), model.grid_tables(), model.mlp_layers())
+    assert not model.can_infer(x)
+    h_sigma, _ = model(x, d)
+    assert h_sigma.requires_grad                     # the autograd path ran
