@@ -109,7 +109,8 @@ class DualField(nn.Module):
             with torch.no_grad():
                 return self.static_field(x, d, dir_features)
         w_density, w_color = _effective_blend(blend, retreat)
-        if self.static_field.can_infer(x):      # renders: both fields and eqs. 4-5 in one kernel pass
+        if self.static_field.can_infer(x) and self.dynamic_field.can_infer(x):   # renders: both fields and
+            # eqs. 4-5 in one kernel pass (a training step, where f_D needs autograd, takes the torch path)
             return kernels.field_inference(x, dir_features, self.static_field.grid_tables(),
                                            self.static_field.mlp_layers(),
                                            second=(self.dynamic_field.grid_tables(), self.dynamic_field.mlp_layers()),

@@ -187,9 +187,16 @@ class RadianceField(nn.Module):
     def can_fuse(self, x: torch.Tensor) -> bool:
         return self.hash_encoding is None and kernels.can_fuse(x, self.config.grid_features)
 
+    def needs_autograd(self, *inputs: torch.Tensor) -> bool:
+        """Whether a forward must record autograd: grad mode is on and an input or a parameter requires
+        grad (a frozen f_S never does, so it takes the inference kernels in training steps too)."""
+        return torch.is_grad_enabled() and (any(t.requires_grad for t in inputs)
+                                            or any(p.requires_grad for p in self.parameters()))
+
     def can_infer(self, x: torch.Tensor) -> bool:
         """The fused inference kernel (look-ups and MLPs in one pass, no autograd) applies to x."""
-        return self.hash_encoding is None and kernels.can_infer(x, self.config.grid_features)
+        return (self.hash_encoding is None and kernels.can_infer(x, self.config.grid_features)
+                and not self.needs_autograd(x))
 
     def mlp_layers(self) -> tuple[nn.Linear, nn.Linear, nn.Linear, nn.Linear]:
         """(density hidden, density out, colour hidden, colour out): the layers heads() runs, in order."""
@@ -226,11 +233,12 @@ class RadianceField(nn.Module):
     def heads(self, features: torch.Tensor, sh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The MLPs: (h_sigma, h_color) from encoded features (M, F) and direction SH features (M, degree**2).
 
-        Without autograd (renders, the frozen f_S) the rows run in blocks of INFERENCE_BLOCK: the MLPs'
-        (block, hidden_width) activations then stay in cache instead of streaming through memory three
-        times per layer (bias copy, matmul, ReLU), which made them memory-bound (profile: ~40% of a
-        render). Deterministic for given inputs; equal to an unblocked evaluation up to the BLAS kernels'
-        float rounding (they may pick their inner blocking by matrix size)."""
+        Without autograd (renders, the frozen f_S) the fused kernel's MLP code runs where it is built
+        (dualnerf.kernels.mlp_inference, equal to float32 rounding); in the torch reference the rows run
+        in blocks of INFERENCE_BLOCK, so the MLPs' (block, hidden_width) activations stay in cache instead
+        of streaming through memory three times per layer (bias copy, matmul, ReLU)."""
+        if kernels.runs_on(features) and not self.needs_autograd(features, sh):
+            return kernels.mlp_inference(features, sh, self.mlp_layers())
         if torch.is_grad_enabled() or features.shape[0] <= INFERENCE_BLOCK:
             return self._heads_block(features, sh)
         h_sigma = features.new_empty(features.shape[0])

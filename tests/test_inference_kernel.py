@@ -103,3 +103,23 @@ def test_inference_refuses_autograd_and_is_not_used_for_training():
     assert not model.can_infer(x)
     h_sigma, _ = model(x, d)
     assert h_sigma.requires_grad                     # the autograd path ran
+    model.requires_grad_(False)                      # a frozen field (f_S) needs no graph: the kernel runs
+    assert model.can_infer(x) and not model(x, d)[0].requires_grad
+    dual = DualField(field(CONFIGS[0], 6), field(CONFIGS[0], 7))
+    h_sigma, _ = dual.query(x, d, blend=(0.1, 0.1))
+    assert h_sigma.requires_grad                     # a training step: f_D through autograd
+
+
+def test_heads_without_autograd_run_the_kernels_mlps():
+    # The frozen f_S in a dual-field training step: its MLPs on the pair kernel's features.
+    model, (x, d) = field(CONFIGS[1], 8), samples(500, seed=5)
+    sh = model.direction_features(d)
+    with torch.no_grad():
+        features = model.features(x)
+        fused = model.heads(features, sh)
+        whole = model(x, d)
+    with torch.enable_grad():
+        reference = model.heads(features, sh)
+    assert all(torch.equal(a, b) for a, b in zip(fused, whole))       # the same MLP code as field_inference
+    for got, want in zip(fused, reference):
+        torch.testing.assert_close(got, want.detach(), atol=2e-5, rtol=1e-5)

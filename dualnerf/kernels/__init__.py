@@ -10,7 +10,9 @@ API:
     field_inference(x (M,3), sh (M,S), tables, layers, second=None, blend=(0, 0)) -> (h_sigma (M,), h_color (M,3))
         without autograd: one field's look-ups and MLPs in one pass, or the dual field's two fused by eqs. 4-5
         (`second` = f_D's (tables, layers); tables = (dense grids, planes), layers = its 4 nn.Linear)
-    can_infer(x, features) -> bool      field_inference applies (no autograd, 2 features per table)
+    mlp_inference(features (M,F), sh (M,S), layers) -> (h_sigma, h_color)   the MLP part alone, no autograd
+    can_infer(x, features) -> bool      field_inference takes these points (2 features per table)
+    runs_on(x) -> bool                  the kernel is built and x is a float32 CPU tensor
     TableGradients(tables)              persistent gradient buffers + touched-chunk flags that the look-up
         kernels' backward fills inside `with table_gradients.collect():` (consumed by dualnerf.optim.FieldAdam)
 
@@ -213,8 +215,8 @@ def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=No
     With `second` = (tables, layers) of f_D: the dual field, h = (1 - w) h_S + w h_D with blend = (w_density,
     w_color) (eqs. 4-5). Agrees with the torch path (features(), heads()) to float32 rounding; one
     sample's result does not depend on the others, the block size or the thread count."""
-    if torch.is_grad_enabled():
-        raise ValueError("field_inference: inference only; run under torch.no_grad()")
+    _refuse_autograd("field_inference", x, sh, *tables[0], *tables[1], *_parameters(layers),
+                     *([] if second is None else [*second[0][0], *second[0][1], *_parameters(second[1])]))
     dense, planes = tables
     second_dense, second_planes, second_layers = [], [], []
     if second is not None:
@@ -224,6 +226,23 @@ def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=No
         second_layers, float(blend[0]), float(blend[1]), _vector_path()))
 
 
+def mlp_inference(features: torch.Tensor, sh: torch.Tensor, layers) -> tuple[torch.Tensor, torch.Tensor]:
+    """field_inference's MLP part on given features (M, F): (h_sigma, h_color) without autograd."""
+    _refuse_autograd("mlp_inference", features, sh, *_parameters(layers))
+    return tuple(grid_kernel().mlp_inference(features, sh, _layer_tensors(layers), _vector_path()))
+
+
+def _parameters(layers) -> list[torch.Tensor]:
+    return [t for layer in layers for t in (layer.weight, layer.bias)]
+
+
+def _refuse_autograd(name: str, *tensors: torch.Tensor) -> None:
+    """The inference kernels record no autograd graph: refuse inputs that would need one."""
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        raise ValueError(f"{name}: inference only, but an input requires grad; run under torch.no_grad() or "
+                         "use the autograd path (features() and heads())")
+
+
 def _vector_path() -> bool:
     """The AVX-512 layer code where the CPU has it (DUALNERF_KERNEL_VECTOR=0: the portable code, for tests;
     both give the same bits)."""
@@ -231,14 +250,19 @@ def _vector_path() -> bool:
 
 
 def can_infer(x: torch.Tensor, features: int) -> bool:
-    """field_inference applies: as can_fuse with 2 features per table, and autograd off."""
-    return features == 2 and not torch.is_grad_enabled() and can_fuse(x, features)
+    """field_inference takes these points: as can_fuse, with 2 features per table (whether autograd is
+    needed is the caller's to check: RadianceField.can_infer)."""
+    return features == 2 and can_fuse(x, features)
+
+
+def runs_on(x: torch.Tensor) -> bool:
+    """The kernel is built and takes x: a float32 CPU tensor."""
+    return x.device.type == "cpu" and x.dtype == torch.float32 and grid_kernel() is not None
 
 
 def can_fuse(x: torch.Tensor, features: int) -> bool:
     """The kernel handles float32 CPU points with 1, 2, 4 or 8 features per table and no grad w.r.t. x."""
-    return (x.device.type == "cpu" and x.dtype == torch.float32 and not x.requires_grad
-            and features in (1, 2, 4, 8) and grid_kernel() is not None)
+    return not x.requires_grad and features in (1, 2, 4, 8) and runs_on(x)
 
 
 def can_fuse_pair(x: torch.Tensor, features: int) -> bool:

@@ -537,6 +537,33 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
   return {h_sigma, h_color};
 }
 
+// The MLPs alone on given features (the frozen f_S in a dual-field training step, whose look-ups the
+// pair kernel already did): (h_sigma (M,), h_color (M, 3)), as field_inference computes them.
+std::vector<torch::Tensor> mlp_inference(torch::Tensor features, torch::Tensor sh, std::vector<torch::Tensor> mlp,
+                                         bool vector_path) {
+  TORCH_CHECK(features.dim() == 2 && features.scalar_type() == torch::kFloat32 && sh.dim() == 2 &&
+                  sh.size(0) == features.size(0) && sh.scalar_type() == torch::kFloat32,
+              "mlp_inference: (M, F) features and (M, S) sh, float32");
+  features = features.contiguous();
+  sh = sh.contiguous();
+  const int64_t m = features.size(0), n_features = features.size(1), n_sh = sh.size(1);
+  const FieldMlps mlps = describe_mlps(mlp, n_features, n_sh);
+  auto h_sigma = torch::empty({m}, features.options());
+  auto h_color = torch::empty({m, 3}, features.options());
+  const float *fp = features.data_ptr<float>(), *shp = sh.data_ptr<float>();
+  float *sp = h_sigma.data_ptr<float>(), *cp = h_color.data_ptr<float>();
+  const bool vec = vector_path && avx512_available();
+  at::parallel_for(0, (m + kInferBlock - 1) / kInferBlock, 1, [&](int64_t block_begin, int64_t block_end) {
+    Scratch scratch(mlps);
+    for (int64_t blk = block_begin; blk < block_end; ++blk) {
+      const int64_t begin = blk * kInferBlock, rows = std::min(m, begin + kInferBlock) - begin;
+      field_mlps(mlps, fp + begin * n_features, n_features, shp + begin * n_sh, rows, scratch, sp + begin,
+                 cp + 3 * begin, vec);
+    }
+  });
+  return {h_sigma, h_color};
+}
+
 bool vector_path_available() { return avx512_available(); }
 
 
@@ -679,13 +706,19 @@ std::vector<torch::Tensor> ray_samples(torch::Tensor origins, torch::Tensor dirs
       const float start = sp[i], stop = ep[i];
       const float length = stop - start > 0.0f ? stop - start : 0.0f;
       const float step = length / static_cast<float>(P);
-      // Proposal weights w_k = T_k (1 - exp(-tau_k)) of the grid density at the bin centres.
-      float optical = 0.0f, weight_sum = 0.0f;
+      // Proposal weights w_k = T_k (1 - exp(-tau_k)) of the grid density at the bin centres, with the
+      // transmittance carried along (T_k+1 = T_k exp(-tau_k)): one exp per bin that holds density, none
+      // for the empty bins that most of a ray crosses.
+      float transmittance = 1.0f, weight_sum = 0.0f;
       for (int64_t k = 0; k < P; ++k) {
         const float tc = start + (static_cast<float>(k) + 0.5f) * step;
         const float tau = fscale * grid[grid_cell(o, d, tc, half_r, top, r)] * step;
-        const float w = std::exp(-optical) * (1.0f - std::exp(-tau));
-        optical += tau;
+        float w = 0.0f;
+        if (tau > 0.0f) {
+          const float survive = std::exp(-tau);
+          w = transmittance * (1.0f - survive);
+          transmittance *= survive;
+        }
         pdf[k] = w;
         weight_sum += w;
       }
@@ -734,5 +767,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
   module.def("adam_step_touched", &adam_step_touched, "adam_step (skip zero) on the touched chunks of a gradient buffer");
   module.def("zero_touched", &zero_touched, "zero the flagged chunks of a gradient buffer and the flags");
   module.def("encode_backward_into", &encode_backward_into, "encode_backward into persistent buffers, flagging touched chunks");
+  module.def("mlp_inference", &mlp_inference, "a field's MLPs on given features (no autograd)");
   module.def("vector_path_available", &vector_path_available, "the AVX-512 MLP path can run on this CPU");
 }
