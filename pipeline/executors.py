@@ -2,7 +2,7 @@
 
     SerialExecutor()                 in this process, one at a time (tests, debugging)
     ProcessPoolExecutor(jobs)        spawn-context worker processes; each job gets
-                                     threads = max(1, cores // jobs)
+                                     threads = cores // (jobs running beside it, at most `jobs`)
     RayExecutor(address=None)        one ray task per step with the stage's resource hints; joins
                                      `address` or starts a local instance; ray imported lazily
 All of them read and write the shared cache folder; only Jobs (keys, params, paths) cross over.
@@ -34,6 +34,10 @@ class Executor(ABC):
     name: str = "?"
     slots: int = 1              # how many jobs the runner may have in flight
     threads: int = 1            # ctx.threads for each job
+
+    def threads_for(self, side_by_side: int) -> int:
+        """ctx.threads for a job that will run beside `side_by_side - 1` others (this executor's jobs)."""
+        return self.threads
 
     @abstractmethod
     def submit(self, job: Job, resources: Resources) -> Any:
@@ -126,11 +130,16 @@ class ProcessPoolExecutor(Executor):
 
         self.slots = max(1, jobs)
         self.threads = max(1, cpu_count() // self.slots)
+        # Workers start with every core's BLAS threads; each job then takes threads_for() of them.
         self._new_pool = lambda: concurrent.futures.ProcessPoolExecutor(
             max_workers=self.slots, mp_context=multiprocessing.get_context("spawn"),
-            initializer=_worker_init, initargs=(self.threads, os.getpid()))
+            initializer=_worker_init, initargs=(cpu_count(), os.getpid()))
         self._pool = self._new_pool()
         self._futures: set = set()
+
+    def threads_for(self, side_by_side: int) -> int:
+        """The cores shared by the jobs running at once: a job alone gets all of them."""
+        return max(1, cpu_count() // max(1, min(self.slots, side_by_side)))
 
     def submit(self, job: Job, resources: Resources):
         from concurrent.futures.process import BrokenProcessPool

@@ -10,6 +10,7 @@ bars (several processes redrawing one terminal line overwrite each other).
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import os
 import signal
@@ -175,9 +176,8 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
     try:
         while True:
             changed = False
-            for key, job in jobs.items():
-                if len(in_flight) >= executor.slots:
-                    break
+            runnable = []
+            for key in jobs:
                 if state[key] != "pending":
                     continue
                 if any(state[d] in ("failed", "skipped") for d in deps[key]):
@@ -190,11 +190,18 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
                         state[key] = "cached"
                         outcomes[key] = Outcome(key, "cached", str(cached))
                         record.update_key(key, status="cached")
-                        continue
-                    state[key] = "running"
-                    record.update_key(key, status="running", started=time.time())
-                    handle = executor.submit(job, by_key[key][0].stage_cls.resources)
-                    in_flight[handle] = key
+                    else:
+                        runnable.append(key)
+            # Threads per job from how many will run side by side now (a lone fit gets every core, two
+            # edits beside each other half each); a job keeps its share until it finishes.
+            launch = runnable[:max(0, executor.slots - len(in_flight))]
+            side_by_side = len(in_flight) + len(launch)
+            for key in launch:
+                state[key] = "running"
+                record.update_key(key, status="running", started=time.time())
+                job = dataclasses.replace(jobs[key], threads=executor.threads_for(side_by_side))
+                handle = executor.submit(job, by_key[key][0].stage_cls.resources)
+                in_flight[handle] = key
             if changed:
                 record.save()
             if not in_flight:

@@ -18,21 +18,24 @@ Outputs:
     edit.json            toggles, instruction, CCI text, editor and encoder identity (simulator flags)
 
 Presets. The paper (GPU, ~512 px images): iterations=15000, edit_rate=10, edit_count=1,
-rays_per_batch=4096 (PAPER_PRESET; workflows can set these). The defaults below are the converging CPU
-preset (issue 11): 1500 iterations at Instruct-NeRF2NeRF's rate of one view every 10 iterations (150
-view updates: each of campsite's 42 training views ~3.6 times) and 1024 rays per batch; with the
-paper's lambda = 0.005 the blend weights reach 0.995 w_max by iteration 600. Cost (benchmarks.profile_edit
-on campsite with a 600-iteration f_S, 2 cores shared under load ~10: absolute times inflated, ratios hold): a
-single-field iteration 4.3 s, a dual-field one 5.9 s (1.38x: f_D's forward + backward as in the single
-field, plus f_S's frozen forward); a view update 32 s single / 52 s dual, almost all of it the render's
-field forwards and proposal (editor ~35 ms, proxy encoder ~20 ms). Unloaded, from the earlier 200-iteration
-measurements, that is ~15 min per single-field row and ~22 min per dual-field row at this preset: the
-6-row ablation does not fit 30 min yet (see README "Presets"). The smoke workflow keeps 200 x 2 views.
+rays_per_batch=4096, RGB + LPIPS (workflows/ablation_paper.toml). The defaults below are
+the scaled CPU preset: 2000 iterations at Instruct-NeRF2NeRF's rate of one view every 10 iterations
+(200 view updates: each of campsite's 42 training views ~4.8 times), 1024 rays per batch, RGB loss only;
+with the paper's lambda = 0.005 the blend weights reach 0.995 w_max by iteration 600.
 
-Loss: RGB + lpips_weight x LPIPS (AlexNet, v0.1) on 32x32 rendered patches, as the paper (Sec. 4.4) and
-Instruct-NeRF2NeRF; at the CPU preset's 1024 rays the one patch is the whole batch, at the paper's 4096
-half of it (2 patches). LPIPS on one 32x32 patch (forward + backward) is small next to rendering the
-batch; benchmarks/bench_lpips prints the step-time ratio. lpips_weight = 0 restores the RGB-only loss.
+Why 2000 and not more: the IDU pulls the consensus of the dataset toward the edit by ~E[s] / N_views per
+update (s ~ U[0.02, 0.98] the editor's noise level, N_views training views), i.e. with a time constant
+of ~N_views x edit_rate / E[s] ~ 840 iterations on campsite, longer while the model lags. Measured
+(campsite/snow, full DualNeRF, RGB only): in-mask PSNR to the ground truth 4.4 -> 16.9 dB after 2000
+iterations, a fitted time constant of ~1200 iterations and ~18% of the change still to come; the report
+fits each row's curve and says how far it is from its plateau. ~3000 iterations would converge (<= 10%
+left) but do not fit the ablation's 30 minutes on 2 cores.
+
+Why no LPIPS at this scale: with 1024 rays one 32x32 patch is the whole batch, so every step trains on a
+single patch of a single view. Measured on the same edit at 1500 iterations: in-mask PSNR 12.7 dB with
+LPIPS (weight 1) vs 14.9 dB without, background PSNR 18.3 vs 23.5 dB, and the in-mask curve's fitted
+time constant twice as long; LPIPS weight 0.1 (13.5 / 19.3 dB) and 2048 rays with one patch (12.5 /
+21.1 dB) did not close the gap. The paper's batches (IN2N: 16384 rays, all in patches) see many views.
 
 Convergence (procedural scenes with gt/edits/): every `convergence_every` iterations the stage renders
 `convergence_views` training views at `convergence_scale` resolution and records PSNR to the ground-truth
@@ -47,7 +50,6 @@ from pathlib import Path
 
 from pipeline.stage import Resources, Stage, StageContext
 
-PAPER_PRESET = {"iterations": 15000, "edit_rate": 10, "edit_count": 1, "rays_per_batch": 4096}
 CCI_TEXTS = ("instruction", "target_caption")
 
 
@@ -69,7 +71,7 @@ class EditParams:
     editor_model: str = ""              # ip2p: local diffusers folder or hub id (default timbrooks/instruct-pix2pix)
     encoder: str = "proxy"              # "proxy" (weight-free, NOT CLIP) or "clip"
     encoder_model: str = ""             # clip: folder from `dualnerf models export-clip`
-    iterations: int = 1500              # scaled CPU preset (paper: 15000)
+    iterations: int = 2000              # scaled CPU preset (paper: 15000)
     edit_rate: int = 10                 # iterations between dataset updates (IN2N: 10)
     edit_count: int = 1                 # views per dataset update (IN2N: 1)
     rays_per_batch: int = 1024          # (paper scale: 4096)
@@ -79,7 +81,8 @@ class EditParams:
     w_max_color: float = 0.1
     blend_rate: float = 0.005           # eq. 6 lambda (paper: 0.005)
     T0: float = 1.0                     # eq. 8 initial temperature (paper: 1)
-    lpips_weight: float = 1.0           # RGB + this x LPIPS on rendered patches (paper Sec. 4.4; IN2N: 1); 0: off
+    lpips_weight: float = 0.0           # RGB + this x LPIPS on rendered patches (paper Sec. 4.4, IN2N: 1, as in
+                                        # ablation_paper.toml); 0 at the CPU preset's 1024 rays (module docstring)
     lpips_net: str = "alex"             # LPIPS backbone: "alex" or "vgg"
     patch_size: int = 32                # LPIPS patches, IN2N's 32x32
     patch_share: float = 0.5            # share of each batch as patches (>= 1 patch: all 1024 rays at 32x32)

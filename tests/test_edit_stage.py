@@ -17,7 +17,7 @@ import torch
 from tests.test_edit_idu import SNOW, build_small_edit_inputs
 
 FAST = {"edit_id": SNOW, "iterations": 20, "edit_rate": 5, "edit_count": 2, "rays_per_batch": 256, "seed": 3,
-            "checkpoint_every_rounds": 1, "num_threads": 1, "lpips_net": "vgg", "patch_size": 16}
+            "checkpoint_every_rounds": 1, "num_threads": 1, "lpips_weight": 1.0, "lpips_net": "vgg", "patch_size": 16}
 # (the 40x30 test images take VGG16's 16x16 LPIPS patches; AlexNet's need 31 px)
 
 

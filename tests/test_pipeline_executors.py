@@ -60,7 +60,32 @@ def check_same(serial, other):
 def test_process_pool_matches_serial(tmp_path, serial):
     pool = run_with(ProcessPoolExecutor(jobs=2), tmp_path, "pool")
     check_same(serial, pool)
-    assert (tmp_path / "threads-pool").read_text() == str(max(1, cpu_count() // 2))
+    # "left" ran beside at most one other step: half the cores, or all of them if it ran alone.
+    assert (tmp_path / "threads-pool").read_text() in {str(max(1, cpu_count() // 2)), str(cpu_count())}
+
+
+def test_pool_threads_are_the_cores_shared_by_the_jobs_running_at_once():
+    pool = ProcessPoolExecutor.__new__(ProcessPoolExecutor)       # threads_for only: no worker processes
+    pool.slots = 3
+    cores = cpu_count()
+    assert pool.threads_for(1) == cores
+    assert pool.threads_for(2) == max(1, cores // 2)
+    assert pool.threads_for(7) == max(1, cores // 3)               # at most `slots` run at once
+    assert SerialExecutor(threads=5).threads_for(3) == 5
+
+
+@pytest.mark.slow
+def test_steps_launched_together_share_the_cores_and_a_lone_step_gets_them_all(tmp_path):
+    seen = {name: tmp_path / f"threads-{name}" for name in ("a", "b", "c")}
+    a = Step("add", {"value": 1.0, "threads_seen": str(seen["a"])}, label="a")
+    b = Step("add", {"value": 2.0, "threads_seen": str(seen["b"])}, label="b")
+    c = Step("add", {"value": 3.0, "threads_seen": str(seen["c"])}, {"left": a, "right": b}, label="c")
+    result = run_steps([c], registry=REGISTRY, store=Store(tmp_path / "cache"), executor=ProcessPoolExecutor(jobs=2),
+                       run_dir=tmp_path / "runs" / "r", quiet=True)
+    assert (result.results[c] / "total.txt").read_text() == "6.0\n"
+    cores = cpu_count()
+    assert seen["a"].read_text() == seen["b"].read_text() == str(max(1, cores // 2))
+    assert seen["c"].read_text() == str(cores)
 
 
 @pytest.mark.slow

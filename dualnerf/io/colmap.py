@@ -27,6 +27,7 @@ def load_pycolmap():
     On import pycolmap installs glog's failure signal handler, SIGTERM included: a terminated worker
     would print a native stack dump and die without unwinding (no clean stop, lease not released).
     glog keeps its handlers for real crashes (SIGSEGV, SIGABRT, ...); only SIGTERM is given back.
+    COLMAP's own INFO logging is turned off (warnings and errors still print).
     """
     import signal
     import threading
@@ -39,6 +40,9 @@ def load_pycolmap():
 
     if previous is not None:
         signal.signal(signal.SIGTERM, previous)
+    # COLMAP's INFO lines (hundreds per reconstruction) flooded the terminal of every run; keep its
+    # warnings and errors. The SfM step reports what matters in sfm_report.json and its log.
+    pycolmap.logging.minloglevel = pycolmap.logging.WARNING
     return pycolmap
 
 

@@ -6,6 +6,7 @@ interrupted ones resume from their newest in-stage checkpoint.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -25,7 +26,8 @@ def register(subparsers) -> None:
     parser.add_argument("--executor", choices=["serial", "process", "ray"], default="process",
                         help="where steps run (default: a local process pool)")
     parser.add_argument("--jobs", type=int, default=None,
-                        help="parallel steps for the process pool (default: cores / threads per job)")
+                        help="parallel steps for the process pool (default: one per core, as memory allows; "
+                             "the cores are split among the steps running at once)")
     parser.add_argument("--ray-address", default=None,
                         help="Ray cluster to join (default: start a local Ray instance)")
     parser.add_argument("--reports", type=Path, default=None,
@@ -35,13 +37,20 @@ def register(subparsers) -> None:
 
 
 def default_jobs(steps) -> int:
-    """As many parallel steps as the CPU holds without oversubscription, given the stages' thread hints."""
+    """One parallel step per core, as many as memory holds by the stages' hints. The pool splits the cores
+    among the steps running at once (pipeline.executors.ProcessPoolExecutor.threads_for): a lone step gets
+    all of them, two edits side by side one each (measured on 2 cores: 1.2x the throughput of running
+    them one after the other with 2 threads each, since a step's Python work does not parallelise)."""
     from pipeline.executors import cpu_count
     from pipeline.registry import load_stage
     from stages import STAGES
 
-    threads_per_job = max(load_stage(STAGES, s.stage).resources.cpus for s in steps)
-    return max(1, cpu_count() // max(1, threads_per_job))
+    memory_gb = max(load_stage(STAGES, s.stage).resources.memory_gb for s in steps)
+    try:
+        total_gb = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2 ** 30
+    except (ValueError, OSError, AttributeError):
+        total_gb = memory_gb
+    return max(1, min(cpu_count(), int(total_gb // max(memory_gb, 1e-9))))
 
 
 def _run(args: argparse.Namespace) -> int:
