@@ -28,7 +28,7 @@ import numpy as np
 
 from dualnerf.metrics import METRICS, METRICS_FORMAT, METRICS_VERSION, json_value, parse_json_value
 from stages import report_statistics as RS
-from stages.report_convergence import write_convergence
+from stages.report_convergence import convergence_html, convergence_summary, write_convergence
 from stages.statistics import summarize_over_seeds
 
 GRID_VIEWS = 4
@@ -580,6 +580,7 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict, refe
     grid_labels = write_image_grid([rows[i] for i in shown], [docs[i] for i in shown], out_dir / "grid.png")
     strip_labels = write_path_strip([rows[i] for i in shown], out_dir / "path_strip.png")
     curves = write_curves(rows, out_dir) + write_convergence(rows, out_dir)
+    convergence = convergence_summary(rows)
     videos = []
     for row in rows:
         source = row.evaluate_dir / "path.mp4"
@@ -596,12 +597,12 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict, refe
         "title": dict(title_rows), "table": table_doc, "grid_rows": grid_labels,
         "per_scene": [{"scene": sc, "edit": ed, "folder": rel, "table": doc}
                       for sc, ed, rel, *_, doc in per_scene], "parameter_plots": param_plots,
-        "path_strip_rows": strip_labels, "curves": curves,
+        "path_strip_rows": strip_labels, "curves": curves, "convergence": convergence,
         "videos": [rel for _, rel in videos],
         "rows": [{"label": r.label, "seed": r.seed, "scene": r.scene, "edit": r.edit,
                   "params": [list(p) for p in r.params], "evaluate_dir": str(r.evaluate_dir),
                   "edit_dir": None if r.edit_dir is None else str(r.edit_dir)} for r in rows]}, indent=1))
     return write_html(out_dir, title_rows=title_rows, columns=columns, table=table, docs=docs,
                       grid_labels=grid_labels, strip_labels=strip_labels, curves=curves, videos=videos,
-                      sections=_statistics_html(columns, table, docs, paired, reference_label, per_scene,
-                                                param_plots))
+                      sections=[*_statistics_html(columns, table, docs, paired, reference_label, per_scene,
+                                                  param_plots), *convergence_html(convergence)])

@@ -147,6 +147,10 @@ def html_section(table, columns, headers, paired: dict, reference: str) -> str:
             parts.append(f"<td{cls}>{esc(format_diff(diff, c))}</td>")
         parts.append("</tr>")
     parts.append(f"</table><p>{esc(caption(reference))}</p>")
+    if all(d.n_pairs < 2 for diffs in paired.values() for d in diffs.values()):
+        parts.append("<p class='warn'>One unit per comparison: these differences say nothing about seed noise. "
+                     "Run more seeds (e.g. --set seeds=[0,1,2]; each adds one run of every row) for "
+                     "intervals.</p>")
     parts += [f"<p class='note'>{esc(note)}</p>" for note in _unpaired_note(paired)]
     return "".join(parts)
 

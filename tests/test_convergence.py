@@ -102,3 +102,29 @@ def test_report_draws_one_convergence_panel_per_row_with_probe_data(tmp_path):
     assert write_convergence(rows, tmp_path / "out") == ["curves/convergence.png"]
     assert (tmp_path / "out" / "curves" / "convergence.png").stat().st_size > 1000
     assert write_convergence(rows[2:], tmp_path / "out") == []
+
+
+def test_convergence_summary_and_page_table(tmp_path):
+    import json
+    from types import SimpleNamespace
+
+    from stages.report_convergence import convergence_html, convergence_summary
+
+    it = list(range(0, 2001, 100))
+    rows = []
+    for name, values in (("settled", [10 + 8 * (1 - math.exp(-t / 300)) for t in it]),
+                         ("rising", [5 + t / 100 for t in it])):
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "curves.json").write_text(json.dumps({"convergence": {
+            "iteration": it, "psnr_in": values, "psnr_out": [25.0] * len(it), "views": [0], "scale": 0.5}}))
+        rows.append(SimpleNamespace(label=name, seed=0, edit_dir=folder))
+    rows.append(SimpleNamespace(label="original", seed=None, edit_dir=None))       # no probe: left out
+    settled, rising = convergence_summary(rows)
+    assert settled["converged"] and settled["plateau"] == pytest.approx(18.0, abs=1e-3)
+    assert settled["note"].startswith("converged")
+    assert rising["converged"] is False and rising["plateau"] is None and rising["share_left"] is None
+    assert "still +10.0 dB per 1000 iterations" in rising["note"]            # the line's slope: 1 dB / 100
+    page = "".join(convergence_html([settled, rising]))
+    assert "settled (seed 0)" in page and "18.0" in page and "no plateau in sight" in page
+    assert convergence_html([]) == []
