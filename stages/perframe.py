@@ -55,7 +55,7 @@ class PerFrameStage(Stage):
     version = "1"
     Params = PerFrameParams
     upstream = ("dataset", "original", "gtviews")
-    resources = Resources(cpus=2, gpus=0, memory_gb=3)
+    resources = Resources(cpus=1, gpus=0, memory_gb=3)
     nonsemantic_params = frozenset({"num_threads"})
     packages = ("torch", "numpy", "opencv-contrib-python-headless", "diffusers", "transformers")
 

@@ -119,12 +119,12 @@ def convergence_html(summary: list[dict]) -> list[str]:
     def number(value, fmt):
         return "-" if value is None else format(value, fmt)
 
-    parts = ["<h2>Convergence</h2><p>In-mask PSNR of the edit stage's probe renders to the ground-truth "
-             "edit (training views, half size), the saturating curve fitted to it, and the share of its "
-             "change still to come (converged: &le; 10%; docs/metrics.md). Outside: PSNR to the original "
-             "outside the edit mask. Curves: <a href='curves/convergence.png'>curves/convergence.png</a>.</p>",
-             "<table><tr><th>row</th><th>iterations</th><th>PSNR in (dB)</th><th>PSNR outside (dB)</th>"
-             "<th>fitted plateau (dB)</th><th>change left</th><th style='text-align:left'>verdict</th></tr>"]
+    parts = [("<h2>Convergence</h2><p>In-mask PSNR of the edit stage's probe renders to the ground-truth "
+              "edit (training views, half size), the saturating curve fitted to it, and the share of its "
+              "change still to come (converged: &le; 10%; docs/metrics.md). Outside: PSNR to the original "
+              "outside the edit mask. Curves: <a href='curves/convergence.png'>curves/convergence.png</a>.</p>"),
+             ("<table><tr><th>row</th><th>iterations</th><th>PSNR in (dB)</th><th>PSNR outside (dB)</th>"
+              "<th>fitted plateau (dB)</th><th>change left</th><th style='text-align:left'>verdict</th></tr>")]
     for e in summary:
         parts.append(f"<tr><td>{html.escape(e['row'])}</td><td>{e['iterations']}</td>"
                      f"<td>{number(e['psnr_in'], '.2f')}</td><td>{number(e['psnr_out'], '.2f')}</td>"

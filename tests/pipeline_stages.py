@@ -21,6 +21,7 @@ from pipeline.stage import Resources, Stage
 REGISTRY = {
     "count": "tests.pipeline_stages:CountStage",
     "add": "tests.pipeline_stages:AddStage",
+    "wide_add": "tests.pipeline_stages:WideAddStage",
     "digest": "tests.pipeline_stages:DigestStage",
     "fail": "tests.pipeline_stages:FailStage",
     "vandal": "tests.pipeline_stages:VandalStage",
@@ -107,6 +108,13 @@ class AddStage(Stage):
         if ctx.params.threads_seen:
             Path(ctx.params.threads_seen).write_text(str(ctx.threads))
         (ctx.out_dir / "total.txt").write_text(f"{total!r}\n")
+
+
+class WideAddStage(AddStage):
+    """AddStage with a 2-CPU hint (the fit stage's)."""
+
+    name = "wide_add"
+    resources = Resources(cpus=2)
 
 
 @dataclass(frozen=True)

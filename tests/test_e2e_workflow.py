@@ -34,7 +34,7 @@ from tests.test_e2e_signals import process_tree
 ROOT = Path(__file__).resolve().parents[1]
 WORKFLOW = "workflows/smoke.toml"
 FAST = ["preprocess.max_size=64",
-        "fit.iterations=20", "fit.rays_per_batch=256", "fit.samples_per_ray=32", "fit.grid_levels=2",
+        "fit.iterations=80", "fit.rays_per_batch=256", "fit.samples_per_ray=32", "fit.grid_levels=2",
         "fit.grid_max_resolution=32", "fit.plane_levels=1", "fit.plane_max_resolution=64", "fit.checkpoint_every=5",
         "fit.eval_every=20", "fit.curve_views=1", "fit.render_samples_per_ray=32",
         "edit.iterations=20", "edit.rays_per_batch=256", "edit.edit_rate=5", "edit.edit_count=1",
@@ -190,7 +190,9 @@ def test_interrupted_and_resumed_run_equals_uninterrupted(reference, tmp_path):
     keys = reference.keys()
 
     # 1. SIGTERM to `dualnerf run` (only the runner) once the fit has written a checkpoint.
-    proc = place.start()
+    # One step at a time (--jobs 1), so what is left after each kill is known; the reference ran with the
+    # default pool (two edits side by side): the same bytes either way.
+    proc = place.start("--jobs", "1")
     wait_for(lambda: checkpoints(place, keys[FIT]), what="a fit checkpoint", proc=proc)
     worker = lease_holder(place, keys[FIT])
     assert worker is not None and worker != proc.pid
@@ -209,7 +211,7 @@ def test_interrupted_and_resumed_run_equals_uninterrupted(reference, tmp_path):
     assert {s["label"]: s["status"] for s in record["steps"]}[FIT] == "interrupted"
 
     # 2. Resume; SIGKILL the whole process tree once the full DualNeRF edit has a checkpoint.
-    proc = place.start()
+    proc = place.start("--jobs", "1")
     wait_for(lambda: checkpoints(place, keys[EDIT_FULL]), what="an edit checkpoint", proc=proc)
     tree = process_tree(proc.pid)
     assert len(tree) >= 2                           # the runner and its pool worker
@@ -219,7 +221,7 @@ def test_interrupted_and_resumed_run_equals_uninterrupted(reference, tmp_path):
     assert not place.entry(keys[EDIT_FULL]).exists()
 
     # 3. Rerun to the end.
-    code, out, err, _ = place.run()
+    code, out, err, _ = place.run("--jobs", "1")
     assert code == 0, err
     assert "(2 computed, 6 cached)" in out          # the interrupted edit and its evaluation
     assert_same_results(reference, place)

@@ -37,10 +37,10 @@ def register(subparsers) -> None:
 
 
 def default_jobs(steps) -> int:
-    """One parallel step per core, as many as memory holds by the stages' hints. The pool splits the cores
-    among the steps running at once (pipeline.executors.ProcessPoolExecutor.threads_for): a lone step gets
-    all of them, two edits side by side one each (measured on 2 cores: 1.2x the throughput of running
-    them one after the other with 2 threads each, since a step's Python work does not parallelise)."""
+    """One parallel step per core, as many as memory holds by the stages' hints. The pool starts steps
+    while their stages' CPU hints fit the cores (fit: 2 threads, alone on 2 cores; edit and evaluate: 1
+    each, two side by side: measured on 2 cores, 1.2x the throughput of one edit after the other on 2
+    threads, since a step's Python work does not parallelise)."""
     from pipeline.executors import cpu_count
     from pipeline.registry import load_stage
     from stages import STAGES
