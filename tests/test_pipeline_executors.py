@@ -7,8 +7,8 @@ import pytest
 
 from pipeline.dag import External, Step
 from pipeline.executors import ProcessPoolExecutor, SerialExecutor, cpu_count
-from pipeline.stage import Resources
 from pipeline.runner import run_steps
+from pipeline.stage import Resources
 from pipeline.store import Store
 from tests.pipeline_stages import REGISTRY
 from tests.test_pipeline_store import tree_digest
