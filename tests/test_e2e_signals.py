@@ -124,7 +124,8 @@ def assert_stopped_cleanly(tmp_path: Path, proc: subprocess.Popen, tree: list[in
     store = Store(tmp_path / "cache")
     if expect_lease_gone:
         assert not list(store.leases.glob("*.lease"))                 # released, not merely stale
-    assert list(store.scratch.glob("*/checkpoints/0*"))               # in-stage checkpoints kept
+    assert list(store.scratch.glob("*/checkpoints/0*")), (err[-3000:], sorted(                      # in-stage
+        str(p.relative_to(store.root)) for p in store.root.rglob("*"))[:50])                      # checkpoints kept
     assert not list(store.entries())                                  # nothing half-done was published
     record = json.loads((tmp_path / "runs" / "t" / "run.json").read_text())
     assert record["status"] == "interrupted"

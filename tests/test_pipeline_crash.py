@@ -121,7 +121,8 @@ def test_ctrl_c_stops_cleanly_keeping_checkpoints(tmp_path, executor):
     wait_for(lambda: counted(trace) >= 3, what="3 counted steps")
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=30)
-    assert proc.returncode != 0 and "KeyboardInterrupt" in err
+    assert proc.returncode != 0 and "KeyboardInterrupt" in err, (proc.returncode, err[-3000:],
+                                                                 trace.read_text()[-2000:])
     store = Store(tmp_path / "cache")
     assert not list(store.leases.glob("*.lease"))                     # lease released
     assert not list((store.root / "tmp").iterdir())                   # temp output removed
