@@ -615,6 +615,30 @@ void adam_step(torch::Tensor param, torch::Tensor grad, torch::Tensor exp_avg, t
   });
 }
 
+#ifdef DUALNERF_HAVE_AVX512
+// One chunk of 16 entries as AdamUpdate does them one by one: the same separately rounded mul, add, sqrt
+// and div (no fused multiply-add), so the same bits; entries with a zero gradient keep p, m and v
+// (NaN gradients update, as `g != 0` is true for NaN). The gradients are zeroed for the next step.
+__attribute__((target("avx512f"))) void adam_chunk_avx512(const AdamUpdate& u, float* p, float* g, float* m, float* v) {
+  const __m512 grad = _mm512_loadu_ps(g);
+  const __mmask16 nonzero = _mm512_cmp_ps_mask(grad, _mm512_setzero_ps(), _CMP_NEQ_UQ);
+  if (nonzero) {
+    const __m512 m_new = _mm512_add_ps(_mm512_mul_ps(_mm512_set1_ps(u.b1), _mm512_loadu_ps(m)),
+                                       _mm512_mul_ps(_mm512_set1_ps(u.one_minus_b1), grad));
+    const __m512 v_new = _mm512_add_ps(_mm512_mul_ps(_mm512_set1_ps(u.b2), _mm512_loadu_ps(v)),
+                                       _mm512_mul_ps(_mm512_mul_ps(_mm512_set1_ps(u.one_minus_b2), grad), grad));
+    const __m512 denom = _mm512_add_ps(_mm512_div_ps(_mm512_sqrt_ps(v_new), _mm512_set1_ps(u.bc2)),
+                                       _mm512_set1_ps(u.eps));
+    const __m512 p_new = _mm512_sub_ps(_mm512_loadu_ps(p), _mm512_mul_ps(_mm512_set1_ps(u.step),
+                                                                         _mm512_div_ps(m_new, denom)));
+    _mm512_mask_storeu_ps(m, nonzero, m_new);
+    _mm512_mask_storeu_ps(v, nonzero, v_new);
+    _mm512_mask_storeu_ps(p, nonzero, p_new);
+  }
+  _mm512_storeu_ps(g, _mm512_setzero_ps());
+}
+#endif
+
 // adam_step with skip_zero on the touched chunks of a TableGradients buffer only (an untouched chunk's
 // gradients are all zero, so skip_zero would leave it as it is anyway: the same bits as adam_step), then
 // zeroes those gradients and flags for the next backward.
@@ -632,10 +656,18 @@ void adam_step_touched(torch::Tensor param, torch::Tensor grad, torch::Tensor to
   float* m = exp_avg.data_ptr<float>();
   float* v = exp_avg_sq.data_ptr<float>();
   uint8_t* flags = touched.data_ptr<uint8_t>();
+  const bool vec = avx512_available();
   at::parallel_for(0, touched.numel(), 1 << 12, [&](int64_t chunk_begin, int64_t chunk_end) {
     for (int64_t c = chunk_begin; c < chunk_end; ++c) {
       if (!flags[c]) continue;
       const int64_t begin = c * kTouchChunk, end = std::min(n, begin + kTouchChunk);
+#ifdef DUALNERF_HAVE_AVX512
+      if (vec && end - begin == kTouchChunk) {
+        adam_chunk_avx512(update, p + begin, g + begin, m + begin, v + begin);
+        flags[c] = 0;
+        continue;
+      }
+#endif
       for (int64_t i = begin; i < end; ++i) {
         if (g[i] != 0.0f) update(p[i], g[i], m[i], v[i]);
         g[i] = 0.0f;
