@@ -218,6 +218,31 @@ std::vector<torch::Tensor> encode_forward_pair(torch::Tensor x, std::vector<torc
   return {out_a, out_b};
 }
 
+// Chunks of gradient values that encode_backward_into flags as touched (for adam_step_touched). Chunks
+// never straddle a corner's features (1, 2, 4 or 8 values at an offset that is a multiple of their count).
+constexpr int64_t kTouchChunk = 16;
+
+// Adds w * grad_out to every table's gradient: parallel over tables, each accumulated by one thread in
+// point order (no races, bit-for-bit repeatable sums). flags[k], where given, marks the touched chunks.
+void accumulate_gradients(const std::vector<Table>& tables, const float* xp, const float* gp, int64_t m,
+                          int64_t n_out, const std::vector<float*>& grads, const std::vector<uint8_t*>& flags) {
+  at::parallel_for(0, static_cast<int64_t>(tables.size()), 1, [&](int64_t begin, int64_t end) {
+    for (int64_t k = begin; k < end; ++k) {
+      const Table& t = tables[k];
+      float* grad = grads[k];
+      uint8_t* touched = flags.empty() ? nullptr : flags[k];
+      const int64_t c = t.channels;
+      for (int64_t i = 0; i < m; ++i) {
+        const float* go = gp + n_out * i + t.column;
+        corners(t, xp + 3 * i, [&](int64_t offset, float w) {
+          for (int64_t j = 0; j < c; ++j) grad[offset + j] += w * go[j];
+          if (touched != nullptr) touched[offset / kTouchChunk] = 1;
+        });
+      }
+    }
+  });
+}
+
 std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
                                            std::vector<torch::Tensor> planes) {
   x = x.contiguous();
@@ -231,31 +256,13 @@ std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_o
   for (auto& g : dense) grads.push_back(torch::zeros_like(g, at::MemoryFormat::ChannelsLast3d));
   for (auto& p : planes) grads.push_back(torch::zeros_like(p, at::MemoryFormat::ChannelsLast));
   for (auto& g : grads) data.push_back(g.data_ptr<float>());
-  const float* xp = x.data_ptr<float>();
-  const float* gp = grad_out.data_ptr<float>();
-  at::parallel_for(0, static_cast<int64_t>(tables.size()), 1, [&](int64_t begin, int64_t end) {
-    for (int64_t k = begin; k < end; ++k) {
-      const Table& t = tables[k];
-      float* grad = data[k];
-      const int64_t c = t.channels;
-      for (int64_t i = 0; i < m; ++i) {
-        const float* go = gp + n_out * i + t.column;
-        corners(t, xp + 3 * i, [&](int64_t offset, float w) {
-          for (int64_t j = 0; j < c; ++j) grad[offset + j] += w * go[j];
-        });
-      }
-    }
-  });
+  accumulate_gradients(tables, x.data_ptr<float>(), grad_out.data_ptr<float>(), m, n_out, data, {});
   return grads;
 }
 
 // The backward of encode_forward into persistent gradient buffers (dualnerf.kernels.TableGradients)
-// instead of freshly zero-filled tensors: adds w * grad_out to grads[k] (as encode_backward, in the same
-// order, so a zeroed buffer ends up with the same bits) and flags every touched chunk of kTouchChunk
-// values in touched[k], for adam_step_touched. Chunks never straddle a corner's features (1, 2, 4 or
-// 8 values at an offset that is a multiple of their count).
-constexpr int64_t kTouchChunk = 16;
-
+// instead of freshly zero-filled tensors: adds to grads[k] exactly as encode_backward does (a zeroed
+// buffer ends up with the same bits) and flags the touched chunks in touched[k].
 void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
                           std::vector<torch::Tensor> planes, std::vector<torch::Tensor> grads,
                           std::vector<torch::Tensor> touched) {
@@ -267,6 +274,8 @@ void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<t
   TORCH_CHECK(grads.size() == tables.size() && touched.size() == tables.size(), "one buffer per table expected");
   std::vector<torch::Tensor> layout = channels_last(dense, true);
   for (auto& p : channels_last(planes, false)) layout.push_back(p);
+  std::vector<float*> data;
+  std::vector<uint8_t*> flags;
   for (size_t k = 0; k < tables.size(); ++k) {
     TORCH_CHECK(grads[k].scalar_type() == torch::kFloat32 && grads[k].strides() == layout[k].strides() &&
                     grads[k].sizes() == layout[k].sizes(),
@@ -274,24 +283,10 @@ void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<t
     TORCH_CHECK(touched[k].scalar_type() == torch::kUInt8 && touched[k].is_contiguous() &&
                     touched[k].numel() == (grads[k].numel() + kTouchChunk - 1) / kTouchChunk,
                 "touched flags must be uint8, one per ", kTouchChunk, " gradient values");
+    data.push_back(grads[k].data_ptr<float>());
+    flags.push_back(touched[k].data_ptr<uint8_t>());
   }
-  const float* xp = x.data_ptr<float>();
-  const float* gp = grad_out.data_ptr<float>();
-  at::parallel_for(0, static_cast<int64_t>(tables.size()), 1, [&](int64_t begin, int64_t end) {
-    for (int64_t k = begin; k < end; ++k) {
-      const Table& t = tables[k];
-      float* grad = grads[k].data_ptr<float>();
-      uint8_t* flags = touched[k].data_ptr<uint8_t>();
-      const int64_t c = t.channels;
-      for (int64_t i = 0; i < m; ++i) {
-        const float* go = gp + n_out * i + t.column;
-        corners(t, xp + 3 * i, [&](int64_t offset, float w) {
-          for (int64_t j = 0; j < c; ++j) grad[offset + j] += w * go[j];
-          flags[offset / kTouchChunk] = 1;
-        });
-      }
-    }
-  });
+  accumulate_gradients(tables, x.data_ptr<float>(), grad_out.data_ptr<float>(), m, n_out, data, flags);
 }
 
 
