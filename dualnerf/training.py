@@ -126,6 +126,9 @@ class RayTrainer:
             self.lpips = load_lpips(config.lpips_net, self.device)
 
     def update_occupancy(self, blend=None) -> None:
+        # The grid takes density values, never gradients: without a graph, 262k points per refresh are
+        # not saved for a backward pass that never comes.
+        @torch.no_grad()
         def density(x):
             return decode_density(self.model.query_density(x, blend=blend))
         self.model.occupancy_for(blend).update(density, self.generator, self.sigma_threshold,

@@ -133,7 +133,7 @@ class _FusedGridFeatures(torch.autograd.Function):
         ctx.save_for_backward(x, *tables)
         ctx.n_dense = n_dense
         ctx.sink = _sink_for(tables)
-        return module.encode_forward(x, dense, planes)
+        return module.encode_forward(x, dense, planes, _vector_path())
 
     @staticmethod
     def backward(ctx, grad):
@@ -154,7 +154,8 @@ class _FusedPairFeatures(torch.autograd.Function):
     def forward(ctx, x, n_dense, n_tables, *tables):
         first, second = tables[:n_tables], tables[n_tables:]
         out_first, out_second = grid_kernel().encode_forward_pair(
-            x, list(first[:n_dense]), list(first[n_dense:]), list(second[:n_dense]), list(second[n_dense:]))
+            x, list(first[:n_dense]), list(first[n_dense:]), list(second[:n_dense]), list(second[n_dense:]),
+            _vector_path())
         ctx.mark_non_differentiable(out_first)
         ctx.save_for_backward(x, *second)
         ctx.n_dense, ctx.n_tables = n_dense, n_tables
@@ -244,8 +245,8 @@ def _refuse_autograd(name: str, *tensors: torch.Tensor) -> None:
 
 
 def _vector_path() -> bool:
-    """The AVX-512 layer code where the CPU has it (DUALNERF_KERNEL_VECTOR=0: the portable code, for tests;
-    both give the same bits)."""
+    """The AVX-512 look-up and layer code where the CPU has it (DUALNERF_KERNEL_VECTOR=0: the portable code,
+    for tests; both give the same bits)."""
     return os.environ.get("DUALNERF_KERNEL_VECTOR", "1") != "0"
 
 
