@@ -9,6 +9,7 @@ API:
         query_density(x, blend, retreat) -> h_sigma;  query_background(d, blend, retreat) -> (R,3)
         occupancy_for(blend) -> OccupancyGrid   (static field's grid when blend is None)
         render_blend: tuple | None              blend to render the saved edit with (set by the edit stage)
+        render_session() -> context manager     a whole-image render: both fields' tables interleaved once
     make_edit_model(static_field, mode: "dual" | "single") -> DualField | RadianceField
 
 Fusion (eqs. 4-5), separately for density and colour features:
@@ -33,6 +34,7 @@ copy of f_S; it is trained and rendered by the same RayTrainer / render_view wit
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 from dataclasses import dataclass
@@ -101,6 +103,23 @@ class DualField(nn.Module):
             self.occupancy.density.copy_(torch.maximum(self.occupancy.density,
                                                        dynamic_field.occupancy.density.to(self.occupancy.density.device)))
         self.render_blend: tuple[float, float] | None = None
+        self._interleaved: list[torch.Tensor] | None = None
+
+    @contextlib.contextmanager
+    def render_session(self):
+        """For a whole-image render, during which no parameter changes: f_S's and f_D's tables interleaved
+        once (kernels.interleave_pair), so every chunk's look-ups read both fields' corner from one cache
+        line. Renders give the same bits with and without it."""
+        if self._interleaved is not None:           # nested: the outer session's tables are current
+            yield
+            return
+        with torch.no_grad():
+            self._interleaved = kernels.interleave_pair(self.static_field.grid_tables(),
+                                                        self.dynamic_field.grid_tables())
+        try:
+            yield
+        finally:
+            self._interleaved = None
 
     def query(self, x, d, blend=None, retreat: float = 1.0, dir_features=None):
         if dir_features is None:          # one SH evaluation for both fields (equal configs)
@@ -114,7 +133,7 @@ class DualField(nn.Module):
             return kernels.field_inference(x, dir_features, self.static_field.grid_tables(),
                                            self.static_field.mlp_layers(),
                                            second=(self.dynamic_field.grid_tables(), self.dynamic_field.mlp_layers()),
-                                           blend=(w_density, w_color))
+                                           blend=(w_density, w_color), interleaved=self._interleaved)
         features_s, features_d = self._both_features(x)
         with torch.no_grad():
             h_sigma_s, h_color_s = self.static_field.heads(features_s, dir_features)

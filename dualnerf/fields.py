@@ -30,6 +30,7 @@ scenes with sky or far walls; "white" / "black" use a constant.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from dataclasses import dataclass
 
@@ -178,6 +179,10 @@ class RadianceField(nn.Module):
 
     def _encodings(self) -> list[nn.Module]:
         return [e for e in (self.encoding, self.hash_encoding, self.plane_encoding) if e is not None]
+
+    def render_session(self):
+        """A whole-image render (see DualField.render_session): nothing to prepare for one field."""
+        return contextlib.nullcontext()
 
     def grid_tables(self) -> tuple[list, list]:
         """(dense grids, planes): the tables the fused look-up kernel reads (dualnerf.kernels)."""

@@ -251,9 +251,10 @@ def render_view(model, c2w, intrinsics, width: int, height: int, near: float, fa
     intrinsics = torch.as_tensor(intrinsics, dtype=torch.float32).to(device)
     origins, dirs = view_rays(c2w, intrinsics, int(width), int(height))
     out = torch.empty(origins.shape[0], 3)
-    for s in range(0, origins.shape[0], chunk):
-        result = render_rays(model, origins[s:s + chunk], dirs[s:s + chunk], float(near), float(far),
-                             blend=blend, retreat=retreat, samples_per_ray=model.config.render_samples_per_ray,
-                             termination_eps=termination_eps)
-        out[s:s + chunk] = result["color"].float().cpu()
+    with model.render_session():
+        for s in range(0, origins.shape[0], chunk):
+            result = render_rays(model, origins[s:s + chunk], dirs[s:s + chunk], float(near), float(far),
+                                 blend=blend, retreat=retreat, samples_per_ray=model.config.render_samples_per_ray,
+                                 termination_eps=termination_eps)
+            out[s:s + chunk] = result["color"].float().cpu()
     return out.reshape(int(height), int(width), 3).clamp(0.0, 1.0)

@@ -123,3 +123,22 @@ def test_heads_without_autograd_run_the_kernels_mlps():
     assert all(torch.equal(a, b) for a, b in zip(fused, whole))       # the same MLP code as field_inference
     for got, want in zip(fused, reference):
         torch.testing.assert_close(got, want.detach(), atol=2e-5, rtol=1e-5)
+
+
+def test_a_render_session_reads_interleaved_tables_with_the_same_bits():
+    # render_view wraps an image in DualField.render_session(): both fields' tables interleaved once.
+    model, (x, d) = DualField(field(CONFIGS[0], 20), field(CONFIGS[0], 21)), samples(1500, seed=9)
+    with torch.no_grad():
+        separate = model.query(x, d, blend=(0.3, 0.6))
+        with model.render_session():
+            assert model._interleaved is not None and len(model._interleaved) == 3 + 3 * 2
+            interleaved = model.query(x, d, blend=(0.3, 0.6))
+        assert model._interleaved is None                     # never outlives the render
+    assert all(torch.equal(a, b) for a, b in zip(separate, interleaved))
+    table = kernels.interleave_pair(model.static_field.grid_tables(),
+                                                               model.dynamic_field.grid_tables())[0]
+    grid_s, grid_d = model.static_field.grid_tables()[0][0], model.dynamic_field.grid_tables()[0][0]
+    cell = (1, 2, 3)                                            # (z, y, x) of the first dense grid
+    flat = (cell[0] * grid_s.shape[3] + cell[1]) * grid_s.shape[4] + cell[2]
+    expected = torch.cat([grid_s[0, :, cell[0], cell[1], cell[2]], grid_d[0, :, cell[0], cell[1], cell[2]]])
+    assert torch.equal(table[4 * flat:4 * flat + 4], expected)

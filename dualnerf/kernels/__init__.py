@@ -208,14 +208,30 @@ def _layer_tensors(layers) -> list[torch.Tensor]:
     return out
 
 
+def interleave_pair(first_tables, second_tables) -> list[torch.Tensor] | None:
+    """Two fields' (dense grids, planes) as one (cells, 4) table each (first's 2 features, then second's),
+    for field_inference(..., interleaved=): both fields' corner from one cache line. None where the kernel
+    cannot take them (not built, not float32 CPU tables with 2 features each)."""
+    module = grid_kernel()
+    tables = [*first_tables[0], *first_tables[1], *second_tables[0], *second_tables[1]]
+    if module is None or not all(t.device.type == "cpu" and t.dtype == torch.float32 and t.shape[1] == 2
+                                 for t in tables):
+        return None
+    with torch.no_grad():
+        return module.interleave_pair(list(first_tables[0]), list(first_tables[1]), list(second_tables[0]),
+                                      list(second_tables[1]))
+
+
 def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=None,
-                    blend: tuple[float, float] = (0.0, 0.0)) -> tuple[torch.Tensor, torch.Tensor]:
+                    blend: tuple[float, float] = (0.0, 0.0),
+                    interleaved: list[torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(h_sigma, h_color) of one field at points x with per-point direction SH features `sh`, computed block
     by block in cache (look-ups, both MLPs) instead of through torch's (M, width) intermediates. `tables` =
     (dense grids, planes) and `layers` = (density hidden, density out, colour hidden, colour out) nn.Linear.
     With `second` = (tables, layers) of f_D: the dual field, h = (1 - w) h_S + w h_D with blend = (w_density,
     w_color) (eqs. 4-5). Agrees with the torch path (features(), heads()) to float32 rounding; one
-    sample's result does not depend on the others, the block size or the thread count."""
+    sample's result does not depend on the others, the block size or the thread count. `interleaved`:
+    interleave_pair(tables, second's tables), read instead of the two fields' tables (the same bits)."""
     _refuse_autograd("field_inference", x, sh, *tables[0], *tables[1], *_parameters(layers),
                      *([] if second is None else [*second[0][0], *second[0][1], *_parameters(second[1])]))
     dense, planes = tables
@@ -224,7 +240,8 @@ def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=No
         (second_dense, second_planes), second_layers = second[0], _layer_tensors(second[1])
     return tuple(grid_kernel().field_inference(
         x, sh, list(dense), list(planes), _layer_tensors(layers), list(second_dense), list(second_planes),
-        second_layers, float(blend[0]), float(blend[1]), _vector_path()))
+        second_layers, float(blend[0]), float(blend[1]), [] if second is None or interleaved is None else interleaved,
+        _vector_path()))
 
 
 def mlp_inference(features: torch.Tensor, sh: torch.Tensor, layers) -> tuple[torch.Tensor, torch.Tensor]:
