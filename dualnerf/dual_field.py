@@ -121,19 +121,23 @@ class DualField(nn.Module):
         finally:
             self._interleaved = None
 
-    def query(self, x, d, blend=None, retreat: float = 1.0, dir_features=None):
+    def query(self, x, d, blend=None, retreat: float = 1.0, dir_features=None, dir_index=None):
+        """dir_features / dir_index as in RadianceField.forward (per-ray SH features and each sample's ray)."""
         if dir_features is None:          # one SH evaluation for both fields (equal configs)
             dir_features = self.static_field.direction_features(d)
         if blend is None:
             with torch.no_grad():
-                return self.static_field(x, d, dir_features)
+                return self.static_field(x, d, dir_features, dir_index)
         w_density, w_color = _effective_blend(blend, retreat)
         if self.static_field.can_infer(x) and self.dynamic_field.can_infer(x):   # renders: both fields and
             # eqs. 4-5 in one kernel pass (a training step, where f_D needs autograd, takes the torch path)
             return kernels.field_inference(x, dir_features, self.static_field.grid_tables(),
                                            self.static_field.mlp_layers(),
                                            second=(self.dynamic_field.grid_tables(), self.dynamic_field.mlp_layers()),
-                                           blend=(w_density, w_color), interleaved=self._interleaved)
+                                           blend=(w_density, w_color), interleaved=self._interleaved,
+                                           sh_index=dir_index)
+        if dir_index is not None:
+            dir_features = dir_features[dir_index]
         features_s, features_d = self._both_features(x)
         with torch.no_grad():
             h_sigma_s, h_color_s = self.static_field.heads(features_s, dir_features)

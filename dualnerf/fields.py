@@ -224,16 +224,17 @@ class RadianceField(nn.Module):
         """The view direction's SH features (M, degree**2) that forward / background_hidden consume."""
         return spherical_harmonics(d, self.config.direction_degree)
 
-    def forward(self, x: torch.Tensor, d: torch.Tensor | None,
-                dir_features: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, x: torch.Tensor, d: torch.Tensor | None, dir_features: torch.Tensor | None = None,
+                dir_index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """`dir_features` (M, degree**2): direction_features(d) computed by the caller (a renderer computes
         them once per ray, not per sample, and shares them between the fields of a DualField); then d is
-        not used. The result is the same either way (element-wise maths). Without autograd the fused
-        inference kernel runs where it applies (dualnerf.kernels.field_inference; equal to float32 rounding)."""
+        not used. The result is the same either way (element-wise maths). With `dir_index` (M,), sample i's
+        are dir_features[dir_index[i]] (one row per ray). Without autograd the fused inference kernel runs
+        where it applies (dualnerf.kernels.field_inference; equal to float32 rounding)."""
         sh = self.direction_features(d) if dir_features is None else dir_features
         if self.can_infer(x):           # renders: look-ups and MLPs in one cache-resident pass
-            return kernels.field_inference(x, sh, self.grid_tables(), self.mlp_layers())
-        return self.heads(self.features(x), sh)
+            return kernels.field_inference(x, sh, self.grid_tables(), self.mlp_layers(), sh_index=dir_index)
+        return self.heads(self.features(x), sh if dir_index is None else sh[dir_index])
 
     def heads(self, features: torch.Tensor, sh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The MLPs: (h_sigma, h_color) from encoded features (M, F) and direction SH features (M, degree**2).
@@ -278,9 +279,9 @@ class RadianceField(nn.Module):
         return torch.full((d.shape[0], 3), value, dtype=d.dtype, device=d.device)
 
     # The rendering interface shared with DualField (see dualnerf.rendering).
-    def query(self, x, d, blend=None, retreat: float = 1.0, dir_features=None):
+    def query(self, x, d, blend=None, retreat: float = 1.0, dir_features=None, dir_index=None):
         _reject_blend(blend)
-        return self(x, d, dir_features)
+        return self(x, d, dir_features, dir_index)
 
     def query_density(self, x, blend=None, retreat: float = 1.0):
         _reject_blend(blend)

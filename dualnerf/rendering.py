@@ -143,7 +143,7 @@ def _query_until_opaque(model, points, ray_features, delta, mask, blend, retreat
             break
         ray_id, column = index[:, 0], index[:, 1] + start
         h_sigma, h_color = model.query(points[ray_id, column], None, blend=blend, retreat=retreat,
-                                       dir_features=ray_features[ray_id])
+                                       dir_features=ray_features, dir_index=ray_id)
         seg_sigma = torch.zeros(seg.shape, dtype=h_sigma.dtype, device=h_sigma.device)
         seg_sigma[index[:, 0], index[:, 1]] = decode_density(h_sigma)
         sigma[:, start:stop] = seg_sigma
@@ -219,7 +219,7 @@ def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float =
     else:
         ray_id = torch.nonzero(mask)[:, 0]
         h_sigma, h_color = model.query(points[mask], None, blend=blend, retreat=retreat,
-                                       dir_features=ray_features[ray_id])
+                                       dir_features=ray_features, dir_index=ray_id)
         sigma = torch.zeros(mask.shape, dtype=h_sigma.dtype, device=h_sigma.device).masked_scatter(
             mask, decode_density(h_sigma))
         weights = composite(sigma, delta)

@@ -142,3 +142,21 @@ def test_a_render_session_reads_interleaved_tables_with_the_same_bits():
     flat = (cell[0] * grid_s.shape[3] + cell[1]) * grid_s.shape[4] + cell[2]
     expected = torch.cat([grid_s[0, :, cell[0], cell[1], cell[2]], grid_d[0, :, cell[0], cell[1], cell[2]]])
     assert torch.equal(table[4 * flat:4 * flat + 4], expected)
+
+
+def test_per_ray_direction_features_with_an_index_equal_the_gathered_rows():
+    # A render passes one SH row per ray and each sample's ray instead of an (M, S) gathered copy.
+    model, (x, d) = DualField(field(CONFIGS[0], 22), field(CONFIGS[0], 23)), samples(1200, seed=10)
+    per_ray = model.static_field.direction_features(d[:40])
+    ray_id = torch.randint(40, (len(x),), generator=torch.Generator().manual_seed(11))
+    with torch.no_grad():
+        for blend in (None, (0.2, 0.7)):
+            gathered = model.query(x, None, blend=blend, dir_features=per_ray[ray_id])
+            indexed = model.query(x, None, blend=blend, dir_features=per_ray, dir_index=ray_id)
+            assert all(torch.equal(a, b) for a, b in zip(gathered, indexed))
+        with pytest.raises(RuntimeError, match="out of range"):
+            kernels.field_inference(x, per_ray, model.static_field.grid_tables(), model.static_field.mlp_layers(),
+                                    sh_index=ray_id + 1)
+    expected = model.query(x, None, blend=(0.2, 0.7), dir_features=per_ray[ray_id])    # autograd: torch path
+    got = model.query(x, None, blend=(0.2, 0.7), dir_features=per_ray, dir_index=ray_id)
+    assert all(torch.equal(a, b) for a, b in zip(expected, got))

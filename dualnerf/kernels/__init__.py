@@ -223,15 +223,17 @@ def interleave_pair(first_tables, second_tables) -> list[torch.Tensor] | None:
 
 
 def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=None,
-                    blend: tuple[float, float] = (0.0, 0.0),
-                    interleaved: list[torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                    blend: tuple[float, float] = (0.0, 0.0), interleaved: list[torch.Tensor] | None = None,
+                    sh_index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(h_sigma, h_color) of one field at points x with per-point direction SH features `sh`, computed block
     by block in cache (look-ups, both MLPs) instead of through torch's (M, width) intermediates. `tables` =
     (dense grids, planes) and `layers` = (density hidden, density out, colour hidden, colour out) nn.Linear.
     With `second` = (tables, layers) of f_D: the dual field, h = (1 - w) h_S + w h_D with blend = (w_density,
     w_color) (eqs. 4-5). Agrees with the torch path (features(), heads()) to float32 rounding; one
     sample's result does not depend on the others, the block size or the thread count. `interleaved`:
-    interleave_pair(tables, second's tables), read instead of the two fields' tables (the same bits)."""
+    interleave_pair(tables, second's tables), read instead of the two fields' tables (the same bits).
+    `sh_index` (M,) int64: sample i's SH features are sh[sh_index[i]] (sh holds one row per ray), the same
+    values as passing sh[sh_index] without writing that (M, S) copy."""
     _refuse_autograd("field_inference", x, sh, *tables[0], *tables[1], *_parameters(layers),
                      *([] if second is None else [*second[0][0], *second[0][1], *_parameters(second[1])]))
     dense, planes = tables
@@ -241,7 +243,7 @@ def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=No
     return tuple(grid_kernel().field_inference(
         x, sh, list(dense), list(planes), _layer_tensors(layers), list(second_dense), list(second_planes),
         second_layers, float(blend[0]), float(blend[1]), [] if second is None or interleaved is None else interleaved,
-        _vector_path()))
+        sh_index, _vector_path()))
 
 
 def mlp_inference(features: torch.Tensor, sh: torch.Tensor, layers) -> tuple[torch.Tensor, torch.Tensor]:

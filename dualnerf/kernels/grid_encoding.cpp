@@ -14,6 +14,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <optional>
 #include <vector>
 
 #if defined(__x86_64__) && defined(__GNUC__)
@@ -583,9 +584,10 @@ struct Scratch {
         rgb(kInferBlock * m.layer[3].out_pad) {}
 };
 
-// (h_sigma, h_color) of `rows` samples from their features and direction SH features.
-void field_mlps(const FieldMlps& m, const float* features, int64_t ld_features, const float* sh, int64_t rows,
-                Scratch& s, float* h_sigma, float* h_color, bool vector_path) {
+// (h_sigma, h_color) of `rows` samples from their features and direction SH features: row r's are
+// sh + r * n_sh, or sh + sh_index[r] * n_sh with an index (a render's per-ray features).
+void field_mlps(const FieldMlps& m, const float* features, int64_t ld_features, const float* sh,
+                const int64_t* sh_index, int64_t rows, Scratch& s, float* h_sigma, float* h_color, bool vector_path) {
   const Layer* l = m.layer;
   const int64_t ld_h = std::max(l[0].out_pad, l[2].out_pad), ld_d = l[1].out_pad, ld_c = l[2].in;
   layer_rows(l[0], features, ld_features, rows, s.hidden.data(), ld_h, true, vector_path);
@@ -596,7 +598,8 @@ void field_mlps(const FieldMlps& m, const float* features, int64_t ld_features, 
     const float* d = s.density_out.data() + r * ld_d;
     h_sigma[r] = d[0];
     std::copy(d + 1, d + 1 + geo, c);
-    std::copy(sh + r * m.n_sh, sh + (r + 1) * m.n_sh, c + geo);
+    const float* sh_row = sh + (sh_index ? sh_index[r] : r) * m.n_sh;
+    std::copy(sh_row, sh_row + m.n_sh, c + geo);
   }
   layer_rows(l[2], s.color_in.data(), ld_c, rows, s.hidden.data(), ld_h, true, vector_path);
   layer_rows(l[3], s.hidden.data(), ld_h, rows, s.rgb.data(), l[3].out_pad, false, vector_path);
@@ -612,12 +615,25 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
                                            std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> mlp_a,
                                            std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b,
                                            std::vector<torch::Tensor> mlp_b, double w_density, double w_color,
-                                           std::vector<torch::Tensor> interleaved, bool vector_path) {
+                                           std::vector<torch::Tensor> interleaved, std::optional<torch::Tensor> sh_index,
+                                           bool vector_path) {
   TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32, "x must be (M, 3) float32");
-  TORCH_CHECK(sh.dim() == 2 && sh.size(0) == x.size(0) && sh.scalar_type() == torch::kFloat32,
-              "sh must be (M, S) float32");
+  const bool indexed = sh_index.has_value();
+  TORCH_CHECK(sh.dim() == 2 && (indexed || sh.size(0) == x.size(0)) && sh.scalar_type() == torch::kFloat32,
+              "sh must be (M, S) float32, or (R, S) with sh_index");
   x = x.contiguous();
   sh = sh.contiguous();
+  torch::Tensor sh_rows_index;
+  if (indexed) {           // sample i's direction features are sh[sh_index[i]] (one row per ray)
+    sh_rows_index = sh_index->contiguous();
+    TORCH_CHECK(sh_rows_index.dim() == 1 && sh_rows_index.size(0) == x.size(0) &&
+                    sh_rows_index.scalar_type() == torch::kInt64,
+                "sh_index must be (M,) int64");
+    if (x.size(0) > 0)
+      TORCH_CHECK(sh_rows_index.min().item<int64_t>() >= 0 && sh_rows_index.max().item<int64_t>() < sh.size(0),
+                  "sh_index out of range of sh's rows");
+  }
+  const int64_t* index = indexed ? sh_rows_index.data_ptr<int64_t>() : nullptr;
   const bool dual = !dense_b.empty();
   auto tables = describe(dense_a, planes_a);
   for (const auto& t : tables)
@@ -672,9 +688,11 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
                    end, begin, vector_path);
       float* sig = sp + begin;
       float* col = cp + 3 * begin;
-      field_mlps(mlps_a, feat_a.data(), n_features, shp + begin * n_sh, rows, scratch, sig, col, vec);
+      const float* sh_rows = index ? shp : shp + begin * n_sh;
+      const int64_t* sh_index_rows = index ? index + begin : nullptr;
+      field_mlps(mlps_a, feat_a.data(), n_features, sh_rows, sh_index_rows, rows, scratch, sig, col, vec);
       if (!dual) continue;
-      field_mlps(mlps_b, feat_b.data(), n_features, shp + begin * n_sh, rows, scratch, sigma_b.data(),
+      field_mlps(mlps_b, feat_b.data(), n_features, sh_rows, sh_index_rows, rows, scratch, sigma_b.data(),
                  color_b.data(), vec);
       // Eqs. 4-5 in the order of dualnerf.dual_field._fuse: (1 - w) * h_S + w * h_D.
       for (int64_t r = 0; r < rows; ++r) sig[r] = keep_d * sig[r] + wd * sigma_b[r];
@@ -739,7 +757,7 @@ std::vector<torch::Tensor> mlp_inference(torch::Tensor features, torch::Tensor s
     Scratch scratch(mlps);
     for (int64_t blk = block_begin; blk < block_end; ++blk) {
       const int64_t begin = blk * kInferBlock, rows = std::min(m, begin + kInferBlock) - begin;
-      field_mlps(mlps, fp + begin * n_features, n_features, shp + begin * n_sh, rows, scratch, sp + begin,
+      field_mlps(mlps, fp + begin * n_features, n_features, shp + begin * n_sh, nullptr, rows, scratch, sp + begin,
                  cp + 3 * begin, vec);
     }
   });
