@@ -217,13 +217,16 @@ def render_rays(model, origins, dirs, near, far, *, blend=None, retreat: float =
         ray_id = torch.div(flat, n_samples, rounding_mode="floor")
         sample_weights = weights.reshape(-1)[flat]
     else:
-        ray_id = torch.nonzero(mask)[:, 0]
-        h_sigma, h_color = model.query(points[mask], None, blend=blend, retreat=retreat,
+        # The occupied samples' flat index r * S + s, found once and reused for every gather and scatter
+        # (each boolean-mask index would search the mask again).
+        flat = torch.nonzero(mask.reshape(-1))[:, 0]
+        ray_id = torch.div(flat, n_samples, rounding_mode="floor")
+        h_sigma, h_color = model.query(points.reshape(-1, 3)[flat], None, blend=blend, retreat=retreat,
                                        dir_features=ray_features, dir_index=ray_id)
-        sigma = torch.zeros(mask.shape, dtype=h_sigma.dtype, device=h_sigma.device).masked_scatter(
-            mask, decode_density(h_sigma))
+        sigma = torch.zeros(mask.numel(), dtype=h_sigma.dtype, device=h_sigma.device).index_put(
+            (flat,), decode_density(h_sigma)).view(mask.shape)
         weights = composite(sigma, delta)
-        sample_weights = weights[mask]
+        sample_weights = weights.reshape(-1)[flat]
     # Packed colour accumulation: only evaluated samples carry weight.
     color = torch.zeros(n_rays, 3, dtype=weights.dtype, device=weights.device).index_add(
         0, ray_id, sample_weights[:, None] * decode_color(h_color))
