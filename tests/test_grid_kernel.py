@@ -182,7 +182,7 @@ def test_dual_field_query_with_the_pair_kernel_matches_the_reference(monkeypatch
         torch.testing.assert_close(fused, reference, atol=1e-5, rtol=1e-5)
 
 
-def test_vector_and_scalar_look_ups_give_the_same_bits(monkeypatch):
+def test_vector_and_scalar_look_ups_and_gradients_give_the_same_bits(monkeypatch):
     # The AVX-512 look-ups (16 points per gather) must reproduce the scalar code exactly: a render and a
     # resumed run may take either path. 3005 points: a 1024-point block tail and a partial 16-lane group;
     # NaN and out-of-cube points take the clamped corners.
@@ -190,11 +190,17 @@ def test_vector_and_scalar_look_ups_give_the_same_bits(monkeypatch):
         pytest.skip("this CPU has no AVX-512: only the scalar look-ups run")
     static, dynamic, x = field(0), field(10), points(3000, seed=12)
     x[[7, 40, 41]] = float("nan")
-    results = []
+    results, grads = [], []
+    weights = torch.randn(len(x), 18, generator=torch.Generator().manual_seed(13))
     for vector in ("1", "0"):
         monkeypatch.setenv("DUALNERF_KERNEL_VECTOR", vector)
         with torch.no_grad():
             pair = kernels.fused_pair_features(x, *static.grid_tables(), *dynamic.grid_tables())
             results.append([static.features(x), *pair])
+        # The backward: the same corner offsets and weights, the additions in the scalar order.
+        dynamic.zero_grad()
+        (kernels.fused_pair_features(x, *static.grid_tables(), *dynamic.grid_tables())[1] * weights).sum().backward()
+        grads.append([p.grad.clone() for p in [*dynamic.encoding.grids, *dynamic.plane_encoding.planes]])
     assert all(torch.equal(a, b) for a, b in zip(*results))
     assert torch.isfinite(results[0][0][8:40]).all() and results[0][0].abs().max() > 1.0
+    assert all(torch.equal(a, b) for a, b in zip(*grads)) and all(g.abs().max() > 0 for g in grads[0])

@@ -101,7 +101,7 @@ class TableGradients:
         tables = [*dense, *planes]
         grid_kernel().encode_backward_into(x, grad, list(dense), list(planes),
                                            [self.buffers[id(t)][1] for t in tables],
-                                           [self.buffers[id(t)][2] for t in tables])
+                                           [self.buffers[id(t)][2] for t in tables], _vector_path())
 
     def clear(self) -> None:
         for _, buffer, touched in self.buffers.values():
@@ -143,7 +143,7 @@ class _FusedGridFeatures(torch.autograd.Function):
         if ctx.sink is not None:
             ctx.sink.add(x, grad, tables[:n], tables[n:])
             return (None, None, *([None] * len(tables)))
-        grads = grid_kernel().encode_backward(x, grad, list(tables[:n]), list(tables[n:]))
+        grads = grid_kernel().encode_backward(x, grad, list(tables[:n]), list(tables[n:]), _vector_path())
         return (None, None, *grads)
 
 
@@ -169,7 +169,8 @@ class _FusedPairFeatures(torch.autograd.Function):
         if ctx.sink is not None:
             ctx.sink.add(x, grad_second, second[:n], second[n:])
             return (None, None, None, *([None] * (2 * ctx.n_tables)))
-        grads = grid_kernel().encode_backward(x, grad_second, list(second[:n]), list(second[n:]))
+        grads = grid_kernel().encode_backward(x, grad_second, list(second[:n]), list(second[n:]),
+                                              _vector_path())
         return (None, None, None, *([None] * ctx.n_tables), *grads)
 
 

@@ -226,14 +226,12 @@ __attribute__((target("avx512f"))) inline void gather_corner(__m512i offset, __m
   }
 }
 
-// Table t (2 features) for the 16 points whose coordinates are xs[0..2][0..15] (structure of arrays),
-// written to rows out + lane * n_out + t.column (and out_b likewise for the second table).
-template <bool Pair>
-__attribute__((target("avx512f"))) void lookup16(const Table& t, const float* ta, const float* tb, const float* xs,
-                                                 int64_t stride, float* oa, float* ob, int64_t n_out) {
+// The corners of 16 points in table t: offsets (floats from the table's start, t.stride apart per cell)
+// and weights, in the order of the scalar corners(); returns their count (8 for a grid, 4 for a plane).
+__attribute__((target("avx512f"))) inline int corners16(const Table& t, const float* xs, int64_t stride,
+                                                        __m512i off[8], __m512 w[8]) {
   const int r = static_cast<int>(t.res), c = static_cast<int>(t.stride);
   const __m512 one = _mm512_set1_ps(1.0f);
-  __m512 acc[4] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
   if (t.kind == 3) {
     const AxisV ax = axis_coord_v(_mm512_loadu_ps(xs), r), ay = axis_coord_v(_mm512_loadu_ps(xs + stride), r),
                 az = axis_coord_v(_mm512_loadu_ps(xs + 2 * stride), r);
@@ -244,27 +242,47 @@ __attribute__((target("avx512f"))) void lookup16(const Table& t, const float* ta
     const __m512i sx = _mm512_set1_epi32(c), sy = _mm512_set1_epi32(c * r), sz = _mm512_set1_epi32(c * r * r);
     const __m512 wx[2] = {_mm512_sub_ps(one, ax.f), ax.f}, wy[2] = {_mm512_sub_ps(one, ay.f), ay.f},
                  wz[2] = {_mm512_sub_ps(one, az.f), az.f};
+    int n = 0;
     for (int dz = 0; dz < 2; ++dz)
       for (int dy = 0; dy < 2; ++dy) {
         const __m512 wzy = _mm512_mul_ps(wz[dz], wy[dy]);
         __m512i row = base;
         if (dz) row = _mm512_add_epi32(row, sz);
         if (dy) row = _mm512_add_epi32(row, sy);
-        gather_corner<Pair>(row, _mm512_mul_ps(wzy, wx[0]), ta, tb, acc);
-        gather_corner<Pair>(_mm512_add_epi32(row, sx), _mm512_mul_ps(wzy, wx[1]), ta, tb, acc);
+        off[n] = row;
+        w[n++] = _mm512_mul_ps(wzy, wx[0]);
+        off[n] = _mm512_add_epi32(row, sx);
+        w[n++] = _mm512_mul_ps(wzy, wx[1]);
       }
-  } else {
-    const AxisV au = axis_coord_v(_mm512_loadu_ps(xs + t.a0 * stride), r),
-                av = axis_coord_v(_mm512_loadu_ps(xs + t.a1 * stride), r);
-    const __m512i base = _mm512_mullo_epi32(_mm512_add_epi32(_mm512_mullo_epi32(av.i0, _mm512_set1_epi32(r)), au.i0),
-                                            _mm512_set1_epi32(c));
-    const __m512i su = _mm512_set1_epi32(c), sv = _mm512_set1_epi32(c * r);
-    const __m512 u0 = _mm512_sub_ps(one, au.f), v0 = _mm512_sub_ps(one, av.f);
-    gather_corner<Pair>(base, _mm512_mul_ps(v0, u0), ta, tb, acc);
-    gather_corner<Pair>(_mm512_add_epi32(base, su), _mm512_mul_ps(v0, au.f), ta, tb, acc);
-    gather_corner<Pair>(_mm512_add_epi32(base, sv), _mm512_mul_ps(av.f, u0), ta, tb, acc);
-    gather_corner<Pair>(_mm512_add_epi32(_mm512_add_epi32(base, sv), su), _mm512_mul_ps(av.f, au.f), ta, tb, acc);
+    return n;
   }
+  const AxisV au = axis_coord_v(_mm512_loadu_ps(xs + t.a0 * stride), r),
+              av = axis_coord_v(_mm512_loadu_ps(xs + t.a1 * stride), r);
+  const __m512i base = _mm512_mullo_epi32(_mm512_add_epi32(_mm512_mullo_epi32(av.i0, _mm512_set1_epi32(r)), au.i0),
+                                          _mm512_set1_epi32(c));
+  const __m512i su = _mm512_set1_epi32(c), sv = _mm512_set1_epi32(c * r);
+  const __m512 u0 = _mm512_sub_ps(one, au.f), v0 = _mm512_sub_ps(one, av.f);
+  off[0] = base;
+  w[0] = _mm512_mul_ps(v0, u0);
+  off[1] = _mm512_add_epi32(base, su);
+  w[1] = _mm512_mul_ps(v0, au.f);
+  off[2] = _mm512_add_epi32(base, sv);
+  w[2] = _mm512_mul_ps(av.f, u0);
+  off[3] = _mm512_add_epi32(_mm512_add_epi32(base, sv), su);
+  w[3] = _mm512_mul_ps(av.f, au.f);
+  return 4;
+}
+
+// Table t (2 features) for the 16 points whose coordinates are xs[0..2][0..15] (structure of arrays),
+// written to rows out + lane * n_out + t.column (and out_b likewise for the second table).
+template <bool Pair>
+__attribute__((target("avx512f"))) void lookup16(const Table& t, const float* ta, const float* tb, const float* xs,
+                                                 int64_t stride, float* oa, float* ob, int64_t n_out) {
+  __m512i off[8];
+  __m512 w[8];
+  const int n = corners16(t, xs, stride, off, w);
+  __m512 acc[4] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
+  for (int k = 0; k < n; ++k) gather_corner<Pair>(off[k], w[k], ta, tb, acc);
   const __m512i rows = _mm512_mullo_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15),
                                           _mm512_set1_epi32(static_cast<int>(n_out)));
   _mm512_i32scatter_ps(oa + t.column, rows, acc[0], 4);
@@ -273,6 +291,19 @@ __attribute__((target("avx512f"))) void lookup16(const Table& t, const float* ta
     _mm512_i32scatter_ps(ob + t.column, rows, acc[2], 4);
     _mm512_i32scatter_ps(ob + t.column + 1, rows, acc[3], 4);
   }
+}
+
+// corners16 into plain arrays (the backward's scalar additions read them lane by lane).
+__attribute__((target("avx512f"))) inline int corners16_to_arrays(const Table& t, const float* xs, int64_t stride,
+                                                                  int32_t offsets[8][16], float weights[8][16]) {
+  __m512i off[8];
+  __m512 w[8];
+  const int n = corners16(t, xs, stride, off, w);
+  for (int k = 0; k < n; ++k) {
+    _mm512_storeu_si512(offsets[k], off[k]);
+    _mm512_storeu_ps(weights[k], w[k]);
+  }
+  return n;
 }
 
 #endif
@@ -371,26 +402,50 @@ constexpr int64_t kTouchChunk = 16;
 // Adds w * grad_out to every table's gradient: parallel over tables, each accumulated by one thread in
 // point order (no races, bit-for-bit repeatable sums). flags[k], where given, marks the touched chunks.
 void accumulate_gradients(const std::vector<Table>& tables, const float* xp, const float* gp, int64_t m,
-                          int64_t n_out, const std::vector<float*>& grads, const std::vector<uint8_t*>& flags) {
+                          int64_t n_out, const std::vector<float*>& grads, const std::vector<uint8_t*>& flags,
+                          bool vector_path) {
+  // With AVX-512, each group of 16 points gets its corner offsets and weights from corners16 (the scalar
+  // corners()'s bits, see lookup16); the additions stay scalar, point by point and corner by corner in
+  // the scalar order, so the sums are the same bits.
+  const bool vec = vector_path && avx512_available();
+  const int64_t n_vec = vec ? m / kLookupLanes * kLookupLanes : 0;
+  std::vector<float> xs(3 * n_vec);           // the points' coordinates as three arrays
+  for (int64_t i = 0; i < n_vec; ++i)
+    for (int a = 0; a < 3; ++a) xs[a * n_vec + i] = xp[3 * i + a];
   at::parallel_for(0, static_cast<int64_t>(tables.size()), 1, [&](int64_t begin, int64_t end) {
     for (int64_t k = begin; k < end; ++k) {
       const Table& t = tables[k];
       float* grad = grads[k];
       uint8_t* touched = flags.empty() ? nullptr : flags[k];
       const int64_t c = t.channels;
-      for (int64_t i = 0; i < m; ++i) {
+      auto add = [&](const float* go, int64_t offset, float w) {
+        for (int64_t j = 0; j < c; ++j) grad[offset + j] += w * go[j];
+        if (touched != nullptr) touched[offset / kTouchChunk] = 1;
+      };
+      int64_t i = 0;
+#ifdef DUALNERF_HAVE_AVX512
+      if (n_vec > 0 && vector_lookup_applies(t)) {
+        for (; i < n_vec; i += kLookupLanes) {
+          int32_t offsets[8][kLookupLanes];
+          float weights[8][kLookupLanes];
+          const int n = corners16_to_arrays(t, xs.data() + i, n_vec, offsets, weights);
+          for (int64_t lane = 0; lane < kLookupLanes; ++lane) {
+            const float* go = gp + n_out * (i + lane) + t.column;
+            for (int corner = 0; corner < n; ++corner) add(go, offsets[corner][lane], weights[corner][lane]);
+          }
+        }
+      }
+#endif
+      for (; i < m; ++i) {
         const float* go = gp + n_out * i + t.column;
-        corners(t, xp + 3 * i, [&](int64_t offset, float w) {
-          for (int64_t j = 0; j < c; ++j) grad[offset + j] += w * go[j];
-          if (touched != nullptr) touched[offset / kTouchChunk] = 1;
-        });
+        corners(t, xp + 3 * i, [&](int64_t offset, float w) { add(go, offset, w); });
       }
     }
   });
 }
 
 std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
-                                           std::vector<torch::Tensor> planes) {
+                                           std::vector<torch::Tensor> planes, bool vector_path) {
   x = x.contiguous();
   grad_out = grad_out.contiguous();
   const auto tables = describe(dense, planes);
@@ -402,7 +457,7 @@ std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_o
   for (auto& g : dense) grads.push_back(torch::zeros_like(g, at::MemoryFormat::ChannelsLast3d));
   for (auto& p : planes) grads.push_back(torch::zeros_like(p, at::MemoryFormat::ChannelsLast));
   for (auto& g : grads) data.push_back(g.data_ptr<float>());
-  accumulate_gradients(tables, x.data_ptr<float>(), grad_out.data_ptr<float>(), m, n_out, data, {});
+  accumulate_gradients(tables, x.data_ptr<float>(), grad_out.data_ptr<float>(), m, n_out, data, {}, vector_path);
   return grads;
 }
 
@@ -411,7 +466,7 @@ std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_o
 // buffer ends up with the same bits) and flags the touched chunks in touched[k].
 void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
                           std::vector<torch::Tensor> planes, std::vector<torch::Tensor> grads,
-                          std::vector<torch::Tensor> touched) {
+                          std::vector<torch::Tensor> touched, bool vector_path) {
   x = x.contiguous();
   grad_out = grad_out.contiguous();
   const auto tables = describe(dense, planes);
@@ -432,7 +487,7 @@ void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<t
     data.push_back(grads[k].data_ptr<float>());
     flags.push_back(touched[k].data_ptr<uint8_t>());
   }
-  accumulate_gradients(tables, x.data_ptr<float>(), grad_out.data_ptr<float>(), m, n_out, data, flags);
+  accumulate_gradients(tables, x.data_ptr<float>(), grad_out.data_ptr<float>(), m, n_out, data, flags, vector_path);
 }
 
 
