@@ -82,6 +82,8 @@ std::vector<torch::Tensor> channels_last(const std::vector<torch::Tensor>& tenso
   return out;
 }
 
+int64_t table_cells(const Table& t) { return t.kind == 3 ? t.res * t.res * t.res : t.res * t.res; }
+
 int64_t total_columns(const std::vector<Table>& tables) {
   return tables.empty() ? 0 : tables.back().column + tables.back().channels;
 }
@@ -161,8 +163,6 @@ void forward_any(const Table& t, const float* table, const float* xp, float* op,
   TORCH_CHECK(false, "grid encoding kernel: features per table must be 1, 2, 4 or 8");
 }
 
-
-
 // The dual field's two fields (same architecture, same points): every corner's index and weight is
 // computed once and applied to both fields' tables. Each output equals encode_forward's for that field
 // bit for bit (the same operations per field in the same order).
@@ -194,8 +194,15 @@ namespace {
 constexpr int64_t kLookupLanes = 16;
 
 bool vector_lookup_applies(const Table& t) {
-  const int64_t cells = t.kind == 3 ? t.res * t.res * t.res : t.res * t.res;
-  return t.channels == 2 && cells * t.stride < (int64_t{1} << 31);
+  return t.channels == 2 && table_cells(t) * t.stride < (int64_t{1} << 31);
+}
+
+// Coordinates of points [begin, begin + n) as three arrays (x's, y's, z's): what the 16-lane code loads.
+std::vector<float> coordinate_arrays(const float* xp, int64_t begin, int64_t n) {
+  std::vector<float> xs(3 * n);
+  for (int64_t i = 0; i < n; ++i)
+    for (int a = 0; a < 3; ++a) xs[a * n + i] = xp[3 * (begin + i) + a];
+  return xs;
 }
 
 #ifdef DUALNERF_HAVE_AVX512
@@ -313,19 +320,19 @@ __attribute__((target("avx512f"))) inline int corners16_to_arrays(const Table& t
 void lookup_range(const std::vector<Table>& tables, const std::vector<const float*>& data_a,
                   const std::vector<const float*>* data_b, const float* xp, float* out_a, float* out_b,
                   int64_t n_out, int64_t begin, int64_t end, int64_t row0, bool vector_path) {
+  auto scalar = [&](size_t k, int64_t from, int64_t to) {
+    if (data_b) forward_table_pair<2>(tables[k], data_a[k], (*data_b)[k], xp, out_a, out_b, n_out, from, to, row0);
+    else forward_any(tables[k], data_a[k], xp, out_a, n_out, from, to, row0);
+  };
   int64_t vector_end = begin;
 #ifdef DUALNERF_HAVE_AVX512
   if (vector_path && avx512_available()) {
     vector_end = begin + (end - begin) / kLookupLanes * kLookupLanes;
     const int64_t n = vector_end - begin;
-    std::vector<float> xs(3 * n);          // the points' coordinates as three arrays
-    for (int64_t i = 0; i < n; ++i)
-      for (int a = 0; a < 3; ++a) xs[a * n + i] = xp[3 * (begin + i) + a];
+    const std::vector<float> xs = coordinate_arrays(xp, begin, n);
     for (size_t k = 0; k < tables.size(); ++k) {
       if (!vector_lookup_applies(tables[k])) {
-        if (data_b) forward_table_pair<2>(tables[k], data_a[k], (*data_b)[k], xp, out_a, out_b, n_out, begin,
-                                          vector_end, row0);
-        else forward_any(tables[k], data_a[k], xp, out_a, n_out, begin, vector_end, row0);
+        scalar(k, begin, vector_end);
         continue;
       }
       for (int64_t i = 0; i < n; i += kLookupLanes) {
@@ -339,11 +346,8 @@ void lookup_range(const std::vector<Table>& tables, const std::vector<const floa
     }
   }
 #endif
-  if (vector_end == end) return;
-  for (size_t k = 0; k < tables.size(); ++k) {
-    if (data_b) forward_table_pair<2>(tables[k], data_a[k], (*data_b)[k], xp, out_a, out_b, n_out, vector_end, end, row0);
-    else forward_any(tables[k], data_a[k], xp, out_a, n_out, vector_end, end, row0);
-  }
+  if (vector_end < end)
+    for (size_t k = 0; k < tables.size(); ++k) scalar(k, vector_end, end);
 }
 
 }  // namespace
@@ -409,9 +413,7 @@ void accumulate_gradients(const std::vector<Table>& tables, const float* xp, con
   // the scalar order, so the sums are the same bits.
   const bool vec = vector_path && avx512_available();
   const int64_t n_vec = vec ? m / kLookupLanes * kLookupLanes : 0;
-  std::vector<float> xs(3 * n_vec);           // the points' coordinates as three arrays
-  for (int64_t i = 0; i < n_vec; ++i)
-    for (int a = 0; a < 3; ++a) xs[a * n_vec + i] = xp[3 * i + a];
+  const std::vector<float> xs = coordinate_arrays(xp, 0, n_vec);
   at::parallel_for(0, static_cast<int64_t>(tables.size()), 1, [&](int64_t begin, int64_t end) {
     for (int64_t k = begin; k < end; ++k) {
       const Table& t = tables[k];
@@ -704,10 +706,8 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
   if (dual && !interleaved.empty()) {        // interleave_pair's tables: f_S's features at +0, f_D's at +2
     TORCH_CHECK(interleaved.size() == tables.size(), "field_inference: one interleaved table per table expected");
     for (size_t k = 0; k < tables.size(); ++k) {
-      const Table& t = tables[k];
-      const int64_t cells = t.kind == 3 ? t.res * t.res * t.res : t.res * t.res;
       TORCH_CHECK(interleaved[k].is_contiguous() && interleaved[k].scalar_type() == torch::kFloat32 &&
-                      interleaved[k].numel() == 4 * cells,
+                      interleaved[k].numel() == 4 * table_cells(tables[k]),
                   "field_inference: interleaved tables must come from interleave_pair for these tables");
       tables[k].stride = 4;
       data_a.push_back(interleaved[k].data_ptr<float>());
@@ -774,8 +774,7 @@ std::vector<torch::Tensor> interleave_pair(std::vector<torch::Tensor> dense_a, s
   const auto data_b = table_data(dense_b, planes_b, keep);
   std::vector<torch::Tensor> out;
   for (size_t k = 0; k < tables.size(); ++k) {
-    const Table& t = tables[k];
-    const int64_t cells = t.kind == 3 ? t.res * t.res * t.res : t.res * t.res;
+    const int64_t cells = table_cells(tables[k]);
     auto pair = torch::empty({4 * cells}, torch::kFloat32);
     float* o = pair.data_ptr<float>();
     const float *a = data_a[k], *b = data_b[k];
