@@ -76,6 +76,10 @@ class IDUConfig:
     lpips_net: str = "alex"
     patch_size: int = 32
     patch_share: float = 0.5
+    # The view updates' renders: "fp32", or "bf16" MLPs in the fused kernel (dualnerf.kernels.mlp_precision:
+    # ~1e-3 mean colour difference, below the 8-bit step the edited image is stored with; the editor
+    # re-noises the render anyway). Training, probes and evaluation renders stay fp32.
+    update_precision: str = "fp32"
 
     def __post_init__(self) -> None:
         for name in ("iterations", "edit_rate", "edit_count", "rays_per_batch"):
@@ -83,6 +87,9 @@ class IDUConfig:
                 raise IDUConfigError(f"edit parameter '{name}' must be >= 1, got {getattr(self, name)}.")
         if not self.learning_rate > 0:
             raise IDUConfigError(f"edit parameter 'lr' must be > 0, got {self.learning_rate}.")
+        if self.update_precision not in ("fp32", "bf16"):
+            raise IDUConfigError(f"edit parameter 'update_precision' must be 'fp32' or 'bf16', got "
+                                 f"{self.update_precision!r}.")
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -181,7 +188,8 @@ class IterativeDatasetUpdate:
             model = DualField(self.static_field, self.model)     # its occupancy: the union of both fields'
             blend = (1.0, 1.0)
         image = render_view(model, ds.c2w[view], ds.intrinsics[view], ds.width, ds.height, float(ds.near[view]),
-                            float(ds.far[view]), blend=blend, retreat=float(retreat) if blend is not None else 1.0)
+                            float(ds.far[view]), blend=blend, retreat=float(retreat) if blend is not None else 1.0,
+                            mlp_precision=self.config.update_precision)
         return image.numpy()
 
     def dataset_update(self, iteration: int) -> None:

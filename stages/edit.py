@@ -87,10 +87,15 @@ class EditParams:
     lpips_net: str = "alex"             # LPIPS backbone: "alex" or "vgg"
     patch_size: int = 32                # LPIPS patches, IN2N's 32x32
     patch_share: float = 0.5            # share of each batch as patches (>= 1 patch: all 1024 rays at 32x32)
+    update_precision: str = "bf16"      # view-update renders' MLPs: "bf16" (AMX tiles where the CPU has them;
+                                        # module docstring) or "fp32"; training, probes and evaluation: fp32
     seed: int = 0
     device: str = "cpu"
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
-    checkpoint_every_rounds: int = 10   # non-semantic: resume is exact from any round
+    # Non-semantic (resume is exact from any round). A checkpoint of a campsite dual-field edit takes ~1.2 s
+    # (f_D, Adam's moments, the images); every 30 rounds (300 iterations, ~1 min of editing on one core)
+    # that is 2% of the stage, and a kill loses at most that minute.
+    checkpoint_every_rounds: int = 30
     convergence_every: int = 100        # probe PSNR to the ground-truth edit every N iterations (0: off)
     convergence_views: int = 3          # training views probed (procedural scenes with gt/edits/ only)
     convergence_scale: float = 0.5      # probe render resolution relative to the dataset's
@@ -107,12 +112,13 @@ def idu_config(p: EditParams):
                      rays_per_batch=p.rays_per_batch, learning_rate=p.lr, dual_lr_scale=p.dual_lr_scale,
                      blend=BlendSchedule(p.w_max_density, p.w_max_color, p.blend_rate),
                      annealing_config=AnnealingConfig(p.T0), seed=p.seed, lpips_weight=p.lpips_weight,
-                     lpips_net=p.lpips_net, patch_size=p.patch_size, patch_share=p.patch_share)
+                     lpips_net=p.lpips_net, patch_size=p.patch_size, patch_share=p.patch_share,
+                     update_precision=p.update_precision)
 
 
 class EditStage(Stage):
     name = "edit"
-    version = "3"          # 3: Adam skips feature-table entries without gradient (dualnerf.optim)
+    version = "4"          # 4: bf16 MLPs in the view updates' renders (update_precision)
     Params = EditParams
     upstream = ("dataset", "fit")
     # One thread: edits run side by side (dualnerf run's default jobs); set num_threads for a lone edit.
@@ -182,10 +188,11 @@ class EditStage(Stage):
             idu.run(on_round_end=on_round_end, progress=bar.update)
         elapsed = time.perf_counter() - started
         done = idu.iteration - first
-        from dualnerf.kernels import kernel_name
+        from dualnerf.kernels import bf16_path_name, kernel_name
 
         ctx.record(seconds_per_iteration=(elapsed / done) if done else None, iterations_run=done,
-                   field_kernel=kernel_name())
+                   field_kernel=kernel_name(),
+                   update_mlps="fp32" if p.update_precision == "fp32" else f"bf16 ({bf16_path_name()})")
 
         out = ctx.out_dir
         model = idu.final_model()

@@ -91,6 +91,7 @@ def test_stage_outputs_records_and_untouched_inputs(small, tmp_path):
     ({"encoder": "clip", "encoder_model": ""}, "needs a model folder"),
     ({"instruction": "make it pink"}, "can only emulate edit 'snow'"),
     ({"lpips_net": "squeeze"}, "lpips_net must be 'alex' or 'vgg'"),
+    ({"update_precision": "fp16"}, "'update_precision' must be 'fp32' or 'bf16'"),
     ({"patch_size": 32}, "more than rays_per_batch"),
     ({"device": "cuda:0"}, "no CUDA device") if not torch.cuda.is_available() else ({}, None),
 ])

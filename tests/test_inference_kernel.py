@@ -160,3 +160,87 @@ def test_per_ray_direction_features_with_an_index_equal_the_gathered_rows():
     expected = model.query(x, None, blend=(0.2, 0.7), dir_features=per_ray[ray_id])    # autograd: torch path
     got = model.query(x, None, blend=(0.2, 0.7), dir_features=per_ray, dir_index=ray_id)
     assert all(torch.equal(a, b) for a, b in zip(expected, got))
+
+
+def bf16_reference(model, x, d):
+    """The bf16 MLPs computed in torch, independently of the kernel: each layer's inputs and weights
+    rounded to bfloat16 by torch's conversion (round to nearest even), then float64 sums plus the bias."""
+    layers = model.mlp_layers()
+
+    def layer(index, inputs, relu_inputs=False):
+        inputs = inputs.clamp(min=0.0) if relu_inputs else inputs
+        weight = layers[index].weight.detach().bfloat16().double()
+        return inputs.bfloat16().double() @ weight.t() + layers[index].bias.detach().double()
+
+    with torch.no_grad():
+        features, sh = model.reference_features(x), model.direction_features(d)
+        density = layer(1, layer(0, features), relu_inputs=True)
+        color_in = torch.cat([density[:, 1:], sh.double()], dim=-1)
+        return density[:, 0], layer(3, layer(2, color_in), relu_inputs=True)
+
+
+def agree_to_bf16_rounding(got, want, scale):
+    """Sums in another order can round a hidden value to the neighbouring bf16 number (0.4% apart) on a
+    few rows; everywhere else the results agree to float32 rounding."""
+    diff = (got.double() - want.double()).abs() / scale
+    assert torch.quantile(diff.flatten(), 0.95) < 1e-5
+    assert diff.max() < 2e-2
+
+
+@pytest.mark.parametrize("config", CONFIGS)
+@pytest.mark.parametrize("tiles", ["1", "0"])
+def test_bf16_mlps_equal_the_rounded_torch_computation(config, tiles, monkeypatch):
+    if tiles == "1" and kernels.bf16_path_name() != "amx-tiles":
+        pytest.skip("this CPU has no AMX tiles: only the bf16 emulation runs")
+    monkeypatch.setenv("DUALNERF_KERNEL_AMX", tiles)
+    model, (x, d) = field(config, 30), samples(2131, seed=12)
+    want_sigma, want_color = bf16_reference(model, x, d)
+    _, exact_color = reference(model, x, d)
+    with torch.no_grad(), kernels.mlp_precision("bf16"):
+        h_sigma, h_color = model(x, d)
+    scale = exact_color.abs().max()
+    agree_to_bf16_rounding(h_sigma, want_sigma, scale)
+    agree_to_bf16_rounding(h_color, want_color, scale)
+    # ... and the rounding is real: bf16 is far from float32 (the kernel did not run its float32 code)
+    rounding = (h_color.double() - exact_color.double()).abs().mean() / scale
+    assert 1e-4 < rounding < 2e-2
+
+
+def test_bf16_tiles_and_emulation_agree_and_fp32_stays_exact(monkeypatch):
+    if kernels.bf16_path_name() != "amx-tiles":
+        pytest.skip("this CPU has no AMX tiles")
+    model = DualField(field(CONFIGS[0], 31), field(CONFIGS[0], 32))
+    x, d = samples(1777, seed=13)
+    with torch.no_grad():
+        fp32 = model.query(x, d, blend=(0.3, 0.6))
+        with kernels.mlp_precision("bf16"):
+            tiles = model.query(x, d, blend=(0.3, 0.6))
+            monkeypatch.setenv("DUALNERF_KERNEL_AMX", "0")
+            emulated = model.query(x, d, blend=(0.3, 0.6))
+        assert kernels.current_mlp_precision() == "fp32"        # the context restores the precision
+        after = model.query(x, d, blend=(0.3, 0.6))
+    scale = fp32[1].abs().max()
+    for a, b in zip(tiles, emulated):
+        agree_to_bf16_rounding(a, b, scale)
+    assert all(torch.equal(a, b) for a, b in zip(fp32, after))
+    with pytest.raises(ValueError, match="bf16"), kernels.mlp_precision("fp16"):
+        pass
+
+
+def test_a_bf16_render_stays_within_a_fraction_of_an_8_bit_step():
+    from dualnerf.rendering import render_view
+
+    model = DualField(field(CONFIGS[0], 33), field(CONFIGS[0], 34))
+    for f in (model.static_field, model.dynamic_field):
+        f.occupancy.mask.fill_(True)
+        f.occupancy.density.fill_(1.0)
+    model.occupancy.mask.fill_(True)
+    model.occupancy.density.fill_(1.0)
+    c2w = torch.eye(4)
+    c2w[2, 3] = -2.5                                  # looking down +z at the cube
+    intrinsics = torch.tensor([24.0, 24.0, 16.0, 12.0])
+    fp32 = render_view(model, c2w, intrinsics, 32, 24, 0.5, 4.0, blend=(0.2, 0.2))
+    bf16 = render_view(model, c2w, intrinsics, 32, 24, 0.5, 4.0, blend=(0.2, 0.2), mlp_precision="bf16")
+    diff = (fp32 - bf16).abs()
+    assert fp32.std() > 0.05                          # the field is in view, not just background
+    assert 0.0 < diff.mean() < 1.0 / 255.0

@@ -14,11 +14,16 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <cstring>
 #include <optional>
 #include <vector>
 
 #if defined(__x86_64__) && defined(__GNUC__)
+#include <cpuid.h>
 #include <immintrin.h>
+#include <sys/syscall.h>
+#include <unistd.h>
 #define DUALNERF_HAVE_AVX512 1   // compiled in with a target attribute; used where the CPU has it
 #endif
 
@@ -602,11 +607,163 @@ void layer_rows(const Layer& l, const float* in, int64_t ld_in, int64_t rows, fl
   layer_rows_portable(l, in, ld_in, rows, out, ld_out, relu);
 }
 
+// ---- bfloat16 MLPs (field_inference(..., bf16=true)): for renders that tolerate bf16 rounding ----
+//
+// Each layer's inputs and weights are rounded to bfloat16 (round to nearest even), the products summed in
+// float32, the bias added in float32. Products of two bf16 values are exact in float32, so the AMX tile
+// path (TDPBF16PS) and the emulation (rounded values through the float32 layer code) differ only in the
+// order of the float32 sums. The emulation runs where the CPU has no AMX; both are compared with the
+// float32 path in tests/test_inference_kernel.py.
+inline float round_bf16(float x) {
+  uint32_t u;
+  std::memcpy(&u, &x, sizeof u);
+  if ((u & 0x7f800000u) != 0x7f800000u) u = (u + 0x7fffu + ((u >> 16) & 1u)) & 0xffff0000u;   // inf, NaN: as is
+  std::memcpy(&x, &u, sizeof x);
+  return x;
+}
+
+constexpr int kTile = 16;      // AMX tile: 16 rows of 64 bytes (16 floats, or 32 bf16 = 16 bf16 pairs)
+constexpr int kTileK = 32;     // bf16 inputs per tile row
+constexpr int kMaxColumnTiles = 4;   // sum tiles per row tile: layers up to 64 outputs run on tiles
+
+struct Bf16Layers {
+  std::vector<float> rounded[4];     // wt rounded to bf16 values (the emulation's weights)
+  std::vector<uint16_t> packed[4];   // AMX layout: (k tile, column tile, 16 input pairs, 16 columns, 2) bf16
+  std::vector<float> bias_rows[4];   // AMX: the bias on 16 rows (the sums' starting tile)
+  int k_pad[4];                      // inputs rounded up to a multiple of kTileK
+};
+
+bool amx_available() {
+#ifdef DUALNERF_HAVE_AVX512
+  static const bool available = [] {
+    unsigned eax = 0, ebx = 0, ecx = 0, edx = 0;
+    if (!__builtin_cpu_supports("avx512f") || !__builtin_cpu_supports("avx512bf16") ||
+        !__get_cpuid_count(7, 0, &eax, &ebx, &ecx, &edx))
+      return false;
+    if (!(edx & (1u << 22)) || !(edx & (1u << 24))) return false;   // AMX-BF16, AMX-TILE
+    // Linux grants a process the tile registers' state only on request (ARCH_REQ_XCOMP_PERM, XTILEDATA).
+    return syscall(SYS_arch_prctl, 0x1023, 18) == 0;
+  }();
+  return available;
+#else
+  return false;
+#endif
+}
+
 // A field's density MLP (features -> hidden -> [h_sigma, geo]) and colour MLP ([geo, sh] -> hidden -> rgb).
+// bf16 set: the layers run in bfloat16 (AMX tiles when amx, else the emulation).
 struct FieldMlps {
   Layer layer[4];
   int n_sh;
+  const Bf16Layers* bf16 = nullptr;
+  bool amx = false;
 };
+
+Bf16Layers bf16_layers(const FieldMlps& m) {
+  Bf16Layers out;
+  for (int i = 0; i < 4; ++i) {
+    const Layer& l = m.layer[i];
+    const int64_t size = static_cast<int64_t>(l.in) * l.out_pad;
+    out.rounded[i].resize(size);
+    for (int64_t j = 0; j < size; ++j) out.rounded[i][j] = round_bf16(l.wt[j]);
+    const int k_pad = (l.in + kTileK - 1) / kTileK * kTileK, n_tiles = l.out_pad / kTile;
+    out.k_pad[i] = k_pad;
+    out.bias_rows[i].resize(static_cast<size_t>(kTile) * l.out_pad);
+    for (int r = 0; r < kTile; ++r) std::copy(l.b, l.b + l.out_pad, out.bias_rows[i].begin() + r * l.out_pad);
+    out.packed[i].assign(static_cast<size_t>(k_pad) * l.out_pad, 0);
+    for (int k = 0; k < l.in; ++k)
+      for (int col = 0; col < l.out_pad; ++col) {
+        const int kt = k / kTileK, pair = (k % kTileK) / 2, nt = col / kTile;
+        const size_t at = ((static_cast<size_t>(kt) * n_tiles + nt) * kTile + pair) * (2 * kTile) +
+                          2 * (col % kTile) + (k % 2);
+        uint32_t bits;
+        std::memcpy(&bits, &out.rounded[i][static_cast<int64_t>(k) * l.out_pad + col], sizeof bits);
+        out.packed[i][at] = static_cast<uint16_t>(bits >> 16);
+      }
+  }
+  return out;
+}
+
+#ifdef DUALNERF_HAVE_AVX512
+struct alignas(64) TileConfig {
+  uint8_t palette, start_row, reserved[14];
+  uint16_t colsb[16];
+  uint8_t rows[16];
+};
+
+// Tiles 0-3: sums (16 rows x 16 floats) for up to 4 column tiles (64 outputs); 4: inputs (16 rows x 32
+// bf16); 5: weights (16 input pairs x 16 columns x 2).
+
+__attribute__((target("amx-tile"))) void amx_begin() {
+  TileConfig config{};
+  config.palette = 1;
+  for (int t = 0; t < 6; ++t) {
+    config.colsb[t] = 64;
+    config.rows[t] = kTile;
+  }
+  // GCC's _tile_loadconfig tells the compiler it reads 8 bytes only; without this barrier the stores to
+  // colsb and rows are dropped as dead and ldtilecfg faults on the incomplete configuration.
+  asm volatile("" : : "r"(&config) : "memory");
+  _tile_loadconfig(&config);
+}
+
+__attribute__((target("amx-tile"))) void amx_end() { _tile_release(); }
+
+// Rows [0, rows <= kInferBlock) of out = bf16(relu?(in)) @ bf16(W) + b on AMX tiles (amx_begin first).
+// The ReLU applies to the inputs: the previous layer's tile stores are read once, by this conversion
+// (reading tile-stored rows back right away for a ReLU pass cost 15% of a render).
+// out must have room for the rows rounded up to 16 and all out_pad columns (scratch rows and padding
+// columns are written too); bias_rows: the bias repeated on 16 rows, the sums' starting value.
+// a: scratch for kInferBlock x k_pad bf16 inputs.
+__attribute__((target("amx-tile,amx-bf16,avx512f,avx512bf16"))) void layer_rows_amx(
+    const Layer& l, const uint16_t* packed, const float* bias_rows, int k_pad, const float* in, int64_t ld_in,
+    int64_t rows, float* out, int64_t ld_out, bool relu_inputs, uint16_t* a) {
+  const int64_t padded_rows = (rows + kTile - 1) / kTile * kTile;
+  const __m512 zero = _mm512_setzero_ps();
+  for (int64_t r = 0; r < padded_rows; ++r)
+    for (int k = 0; k < k_pad; k += kTile) {
+      const int left = r < rows ? l.in - k : 0;
+      const __mmask16 mask = left >= kTile ? static_cast<__mmask16>(0xFFFF)
+                                           : static_cast<__mmask16>((1u << (left > 0 ? left : 0)) - 1u);
+      __m512 x = _mm512_maskz_loadu_ps(mask, in + r * ld_in + k);
+      if (relu_inputs) x = _mm512_max_ps(x, zero);
+      _mm256_storeu_si256(reinterpret_cast<__m256i*>(a + r * k_pad + k), (__m256i)_mm512_cvtneps_pbh(x));
+    }
+  const int n_tiles = l.out_pad / kTile, k_tiles = k_pad / kTileK;
+  const int64_t ld_bytes = 4 * ld_out, bias_bytes = 4 * l.out_pad;
+  const size_t b_tile = static_cast<size_t>(kTile) * 2 * kTile;
+  for (int64_t rt = 0; rt < padded_rows; rt += kTile) {
+    float* o = out + rt * ld_out;
+    // Tile numbers are immediates: one branch per column-tile count.
+    _tile_loadd(0, bias_rows, bias_bytes);
+    if (n_tiles > 1) _tile_loadd(1, bias_rows + kTile, bias_bytes);
+    if (n_tiles > 2) _tile_loadd(2, bias_rows + 2 * kTile, bias_bytes);
+    if (n_tiles > 3) _tile_loadd(3, bias_rows + 3 * kTile, bias_bytes);
+    for (int kt = 0; kt < k_tiles; ++kt) {
+      _tile_loadd(4, a + rt * k_pad + kt * kTileK, 2 * k_pad);
+      const uint16_t* w = packed + static_cast<size_t>(kt) * n_tiles * b_tile;
+      _tile_loadd(5, w, 4 * kTile);
+      _tile_dpbf16ps(0, 4, 5);
+      if (n_tiles > 1) {
+        _tile_loadd(5, w + b_tile, 4 * kTile);
+        _tile_dpbf16ps(1, 4, 5);
+      }
+      if (n_tiles > 2) {
+        _tile_loadd(5, w + 2 * b_tile, 4 * kTile);
+        _tile_dpbf16ps(2, 4, 5);
+      }
+      if (n_tiles > 3) {
+        _tile_loadd(5, w + 3 * b_tile, 4 * kTile);
+        _tile_dpbf16ps(3, 4, 5);
+      }
+    }
+    _tile_stored(0, o, ld_bytes);
+    if (n_tiles > 1) _tile_stored(1, o + kTile, ld_bytes);
+    if (n_tiles > 2) _tile_stored(2, o + 2 * kTile, ld_bytes);
+    if (n_tiles > 3) _tile_stored(3, o + 3 * kTile, ld_bytes);
+  }
+}
+#endif
 
 FieldMlps describe_mlps(const std::vector<torch::Tensor>& t, int64_t n_features, int64_t n_sh) {
   TORCH_CHECK(t.size() == 8, "field_inference: 8 MLP tensors expected (wt, b for 4 layers)");
@@ -634,12 +791,41 @@ FieldMlps describe_mlps(const std::vector<torch::Tensor>& t, int64_t n_features,
 }
 
 struct Scratch {
-  std::vector<float> hidden, density_out, color_in, rgb;
+  std::vector<float> hidden, density_out, color_in, rgb, rounded_in;
+  std::vector<uint16_t> tile_a;
   explicit Scratch(const FieldMlps& m)
       : hidden(kInferBlock * std::max(m.layer[0].out_pad, m.layer[2].out_pad)),
         density_out(kInferBlock * m.layer[1].out_pad), color_in(kInferBlock * m.layer[2].in),
-        rgb(kInferBlock * m.layer[3].out_pad) {}
+        rgb(kInferBlock * m.layer[3].out_pad) {
+    if (!m.bf16) return;
+    int widest = 0, widest_pad = 0;
+    for (int i = 0; i < 4; ++i) {
+      widest = std::max(widest, m.layer[i].in);
+      widest_pad = std::max(widest_pad, m.bf16->k_pad[i]);
+    }
+    rounded_in.resize(kInferBlock * widest);
+    tile_a.resize(kInferBlock * widest_pad);
+  }
 };
+
+// Layer i of m on rows [0, rows) in m's precision (float32, or bf16 on AMX tiles or emulated). On tiles,
+// the hidden layers' ReLU is left to the next layer's input conversion: only layers 1 and 3 read them.
+void apply_layer(const FieldMlps& m, int i, const float* in, int64_t ld_in, int64_t rows, float* out, int64_t ld_out,
+                 bool relu, Scratch& s, bool vector_path) {
+  const Layer& l = m.layer[i];
+  if (!m.bf16) return layer_rows(l, in, ld_in, rows, out, ld_out, relu, vector_path);
+#ifdef DUALNERF_HAVE_AVX512
+  if (m.amx)
+    return layer_rows_amx(l, m.bf16->packed[i].data(), m.bf16->bias_rows[i].data(), m.bf16->k_pad[i], in, ld_in,
+                          rows, out, ld_out, i == 1 || i == 3, s.tile_a.data());
+#endif
+  float* x = s.rounded_in.data();
+  for (int64_t r = 0; r < rows; ++r)
+    for (int k = 0; k < l.in; ++k) x[r * l.in + k] = round_bf16(in[r * ld_in + k]);
+  Layer rounded = l;
+  rounded.wt = m.bf16->rounded[i].data();
+  layer_rows(rounded, x, l.in, rows, out, ld_out, relu, vector_path);
+}
 
 // (h_sigma, h_color) of `rows` samples from their features and direction SH features: row r's are
 // sh + r * n_sh, or sh + sh_index[r] * n_sh with an index (a render's per-ray features).
@@ -647,8 +833,8 @@ void field_mlps(const FieldMlps& m, const float* features, int64_t ld_features, 
                 const int64_t* sh_index, int64_t rows, Scratch& s, float* h_sigma, float* h_color, bool vector_path) {
   const Layer* l = m.layer;
   const int64_t ld_h = std::max(l[0].out_pad, l[2].out_pad), ld_d = l[1].out_pad, ld_c = l[2].in;
-  layer_rows(l[0], features, ld_features, rows, s.hidden.data(), ld_h, true, vector_path);
-  layer_rows(l[1], s.hidden.data(), ld_h, rows, s.density_out.data(), ld_d, false, vector_path);
+  apply_layer(m, 0, features, ld_features, rows, s.hidden.data(), ld_h, true, s, vector_path);
+  apply_layer(m, 1, s.hidden.data(), ld_h, rows, s.density_out.data(), ld_d, false, s, vector_path);
   const int geo = l[1].out - 1;
   for (int64_t r = 0; r < rows; ++r) {
     float* c = s.color_in.data() + r * ld_c;
@@ -658,8 +844,8 @@ void field_mlps(const FieldMlps& m, const float* features, int64_t ld_features, 
     const float* sh_row = sh + (sh_index ? sh_index[r] : r) * m.n_sh;
     std::copy(sh_row, sh_row + m.n_sh, c + geo);
   }
-  layer_rows(l[2], s.color_in.data(), ld_c, rows, s.hidden.data(), ld_h, true, vector_path);
-  layer_rows(l[3], s.hidden.data(), ld_h, rows, s.rgb.data(), l[3].out_pad, false, vector_path);
+  apply_layer(m, 2, s.color_in.data(), ld_c, rows, s.hidden.data(), ld_h, true, s, vector_path);
+  apply_layer(m, 3, s.hidden.data(), ld_h, rows, s.rgb.data(), l[3].out_pad, false, s, vector_path);
   for (int64_t r = 0; r < rows; ++r)
     for (int j = 0; j < 3; ++j) h_color[3 * r + j] = s.rgb[r * l[3].out_pad + j];
 }
@@ -673,7 +859,7 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
                                            std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b,
                                            std::vector<torch::Tensor> mlp_b, double w_density, double w_color,
                                            std::vector<torch::Tensor> interleaved, std::optional<torch::Tensor> sh_index,
-                                           bool vector_path) {
+                                           bool vector_path, bool bf16, bool amx) {
   TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32, "x must be (M, 3) float32");
   const bool indexed = sh_index.has_value();
   TORCH_CHECK(sh.dim() == 2 && (indexed || sh.size(0) == x.size(0)) && sh.scalar_type() == torch::kFloat32,
@@ -718,8 +904,8 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
     if (dual) data_b = table_data(dense_b, planes_b, keep);
   }
   const int64_t m = x.size(0), n_features = total_columns(tables), n_sh = sh.size(1);
-  const FieldMlps mlps_a = describe_mlps(mlp_a, n_features, n_sh);
-  const FieldMlps mlps_b = dual ? describe_mlps(mlp_b, n_features, n_sh) : mlps_a;
+  FieldMlps mlps_a = describe_mlps(mlp_a, n_features, n_sh);
+  FieldMlps mlps_b = dual ? describe_mlps(mlp_b, n_features, n_sh) : mlps_a;
   if (dual)
     for (int i = 0; i < 4; ++i)
       TORCH_CHECK(mlps_b.layer[i].in == mlps_a.layer[i].in && mlps_b.layer[i].out_pad == mlps_a.layer[i].out_pad,
@@ -732,8 +918,25 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
   const float wd = static_cast<float>(w_density), wc = static_cast<float>(w_color);
   const float keep_d = static_cast<float>(1.0 - w_density), keep_c = static_cast<float>(1.0 - w_color);
   const bool vec = vector_path && avx512_available();
+  bool widths_fit = true;      // the tile code holds up to kMaxColumnTiles x 16 outputs per layer
+  for (int i = 0; i < 4; ++i) widths_fit = widths_fit && mlps_a.layer[i].out_pad <= kMaxColumnTiles * kTile;
+  const bool tiles = bf16 && amx && vec && widths_fit && amx_available();
+  Bf16Layers bf16_a, bf16_b;
+  if (bf16) {
+    bf16_a = bf16_layers(mlps_a);
+    mlps_a.bf16 = &bf16_a;
+    mlps_a.amx = tiles;
+    if (dual) {
+      bf16_b = bf16_layers(mlps_b);
+      mlps_b.bf16 = &bf16_b;
+      mlps_b.amx = tiles;
+    }
+  }
   const int64_t n_blocks = (m + kInferBlock - 1) / kInferBlock;
   at::parallel_for(0, n_blocks, 1, [&](int64_t block_begin, int64_t block_end) {
+#ifdef DUALNERF_HAVE_AVX512
+    if (tiles) amx_begin();     // the tile configuration is per thread
+#endif
     Scratch scratch(mlps_a);
     std::vector<float> feat_a(kInferBlock * n_features), feat_b(dual ? kInferBlock * n_features : 0);
     std::vector<float> sigma_b(dual ? kInferBlock : 0), color_b(dual ? 3 * kInferBlock : 0);
@@ -753,6 +956,9 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
       for (int64_t r = 0; r < rows; ++r) sig[r] = keep_d * sig[r] + wd * sigma_b[r];
       for (int64_t r = 0; r < 3 * rows; ++r) col[r] = keep_c * col[r] + wc * color_b[r];
     }
+#ifdef DUALNERF_HAVE_AVX512
+    if (tiles) amx_end();
+#endif
   });
   return {h_sigma, h_color};
 }
@@ -819,6 +1025,8 @@ std::vector<torch::Tensor> mlp_inference(torch::Tensor features, torch::Tensor s
 }
 
 bool vector_path_available() { return avx512_available(); }
+
+bool amx_path_available() { return avx512_available() && amx_available(); }
 
 
 
@@ -1056,4 +1264,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
   module.def("encode_backward_into", &encode_backward_into, "encode_backward into persistent buffers, flagging touched chunks");
   module.def("mlp_inference", &mlp_inference, "a field's MLPs on given features (no autograd)");
   module.def("vector_path_available", &vector_path_available, "the AVX-512 look-up and MLP paths can run on this CPU");
+  module.def("amx_path_available", &amx_path_available, "field_inference's bf16 MLPs can run on AMX tiles here");
 }
