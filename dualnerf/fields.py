@@ -43,7 +43,7 @@ from dualnerf.occupancy import OccupancyGrid
 
 BACKGROUNDS = ("learned", "white", "black")
 # exp() beyond this would overflow float32 rendering maths; the backward uses the same clamp.
-_TRUNC_EXP_MAX = 15.0
+TRUNC_EXP_MAX = 15.0
 # Rows per block in heads() / density_head() without autograd (see heads); tuned on 2 cores (renders).
 INFERENCE_BLOCK = 16384
 
@@ -120,7 +120,7 @@ class FieldConfig:
 class _TruncExp(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x):
-        clamped = x.clamp(max=_TRUNC_EXP_MAX)
+        clamped = x.clamp(max=TRUNC_EXP_MAX)
         ctx.save_for_backward(clamped)
         return torch.exp(clamped)
 

@@ -118,7 +118,7 @@ def idu_config(p: EditParams):
 
 class EditStage(Stage):
     name = "edit"
-    version = "4"          # 4: bf16 MLPs in the view updates' renders (update_precision)
+    version = "4"          # 4: bf16 MLPs in the view updates' renders (update_precision), packed renders
     Params = EditParams
     upstream = ("dataset", "fit")
     # One thread: edits run side by side (dualnerf run's default jobs); set num_threads for a lone edit.

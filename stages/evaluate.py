@@ -58,7 +58,7 @@ class EvaluateParams:
 
 class EvaluateStage(Stage):
     name = "evaluate"
-    version = "3"                       # 3: LPIPS metrics; path.mp4 is H.264 (was mp4v)
+    version = "4"                       # 3: LPIPS metrics; path.mp4 is H.264 (was mp4v); 4: packed renders
     Params = EvaluateParams
     # "original": the evaluate result of the unedited scene (same dataset and fit). Edited rows reuse its
     # f_S renders instead of rendering the same camera path again (the workflow passes it).

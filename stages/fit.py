@@ -90,8 +90,9 @@ def field_config(p: FitParams):
 class FitStage(Stage):
     name = "fit"
     # 2: proposal density scale (a different sampler, so different fields); 3: feature planes and the
-    # render sample count; 4: Adam skips feature-table entries without gradient (dualnerf.optim)
-    version = "4"
+    # render sample count; 4: Adam skips feature-table entries without gradient (dualnerf.optim); 5: renders
+    # composite in the packed kernel path (dualnerf.rendering._render_packed: float32 rounding differs)
+    version = "5"
     Params = FitParams
     upstream = ("dataset",)
     resources = Resources(cpus=2, gpus=0, memory_gb=3)

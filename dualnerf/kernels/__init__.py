@@ -103,7 +103,7 @@ class TableGradients:
         tables = [*dense, *planes]
         grid_kernel().encode_backward_into(x, grad, list(dense), list(planes),
                                            [self.buffers[id(t)][1] for t in tables],
-                                           [self.buffers[id(t)][2] for t in tables], _vector_path())
+                                           [self.buffers[id(t)][2] for t in tables], vector_path())
 
     def clear(self) -> None:
         for _, buffer, touched in self.buffers.values():
@@ -135,7 +135,7 @@ class _FusedGridFeatures(torch.autograd.Function):
         ctx.save_for_backward(x, *tables)
         ctx.n_dense = n_dense
         ctx.sink = _sink_for(tables)
-        return module.encode_forward(x, dense, planes, _vector_path())
+        return module.encode_forward(x, dense, planes, vector_path())
 
     @staticmethod
     def backward(ctx, grad):
@@ -145,7 +145,7 @@ class _FusedGridFeatures(torch.autograd.Function):
         if ctx.sink is not None:
             ctx.sink.add(x, grad, tables[:n], tables[n:])
             return (None, None, *([None] * len(tables)))
-        grads = grid_kernel().encode_backward(x, grad, list(tables[:n]), list(tables[n:]), _vector_path())
+        grads = grid_kernel().encode_backward(x, grad, list(tables[:n]), list(tables[n:]), vector_path())
         return (None, None, *grads)
 
 
@@ -157,7 +157,7 @@ class _FusedPairFeatures(torch.autograd.Function):
         first, second = tables[:n_tables], tables[n_tables:]
         out_first, out_second = grid_kernel().encode_forward_pair(
             x, list(first[:n_dense]), list(first[n_dense:]), list(second[:n_dense]), list(second[n_dense:]),
-            _vector_path())
+            vector_path())
         ctx.mark_non_differentiable(out_first)
         ctx.save_for_backward(x, *second)
         ctx.n_dense, ctx.n_tables = n_dense, n_tables
@@ -172,7 +172,7 @@ class _FusedPairFeatures(torch.autograd.Function):
             ctx.sink.add(x, grad_second, second[:n], second[n:])
             return (None, None, None, *([None] * (2 * ctx.n_tables)))
         grads = grid_kernel().encode_backward(x, grad_second, list(second[:n]), list(second[n:]),
-                                              _vector_path())
+                                              vector_path())
         return (None, None, None, *([None] * ctx.n_tables), *grads)
 
 
@@ -246,13 +246,13 @@ def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=No
     return tuple(grid_kernel().field_inference(
         x, sh, list(dense), list(planes), _layer_tensors(layers), list(second_dense), list(second_planes),
         second_layers, float(blend[0]), float(blend[1]), [] if second is None or interleaved is None else interleaved,
-        sh_index, _vector_path(), current_mlp_precision() == "bf16", _amx_path()))
+        sh_index, vector_path(), current_mlp_precision() == "bf16", _amx_path()))
 
 
 def mlp_inference(features: torch.Tensor, sh: torch.Tensor, layers) -> tuple[torch.Tensor, torch.Tensor]:
     """field_inference's MLP part on given features (M, F): (h_sigma, h_color) without autograd."""
     _refuse_autograd("mlp_inference", features, sh, *_parameters(layers))
-    return tuple(grid_kernel().mlp_inference(features, sh, _layer_tensors(layers), _vector_path()))
+    return tuple(grid_kernel().mlp_inference(features, sh, _layer_tensors(layers), vector_path()))
 
 
 MLP_PRECISIONS = ("fp32", "bf16")
@@ -289,7 +289,7 @@ def bf16_path_name() -> str:
 
 def _amx_path() -> bool:
     """AMX tiles for bf16 MLPs where the CPU has them (DUALNERF_KERNEL_AMX=0: the emulation, for tests)."""
-    return _vector_path() and os.environ.get("DUALNERF_KERNEL_AMX", "1") != "0"
+    return vector_path() and os.environ.get("DUALNERF_KERNEL_AMX", "1") != "0"
 
 
 def _parameters(layers) -> list[torch.Tensor]:
@@ -303,7 +303,7 @@ def _refuse_autograd(name: str, *tensors: torch.Tensor) -> None:
                          "use the autograd path (features() and heads())")
 
 
-def _vector_path() -> bool:
+def vector_path() -> bool:
     """The AVX-512 look-up and layer code where the CPU has it (DUALNERF_KERNEL_VECTOR=0: the portable code,
     for tests; both give the same bits)."""
     return os.environ.get("DUALNERF_KERNEL_VECTOR", "1") != "0"
