@@ -174,7 +174,7 @@ def ray_samples(grid, config, origins, dirs, t_start, t_end, n_samples: int, jit
         return tuple(module.ray_samples(origins, dirs, t_start, t_end, grid.density, grid.mask,
                                         float(config.proposal_density_scale), int(config.proposal_samples),
                                         int(n_samples), float(config.proposal_uniform),
-                                        no_jitter if jitter is None else jitter))
+                                        no_jitter if jitter is None else jitter, kernels.vector_path()))
 
     def grid_density(t):
         return ray_grid_density(grid, origins, dirs, t, config.proposal_density_scale)
