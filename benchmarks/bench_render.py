@@ -5,7 +5,8 @@
 
 Renders one training view at the dataset size (campsite: 256x192, the IDU view update) from f_S
 (fitted once by the fit stage and cached, as in benchmarks.profile_edit) and from the dual field at its
-saturated blend (f_D = f_S perturbed, so both fields really run), and prints per model: median seconds
+saturated blend (f_D = f_S perturbed, so both fields really run), in float32 (evaluation renders) and
+with bf16 MLPs (the edit stage's view updates), and prints per model: median seconds
 per render, renders/s, evaluated field samples per image, field samples/s, and the ratio of the measured
 time to the limit
 
@@ -44,12 +45,12 @@ def matmul_flops(threads: int, size: int = 1024, repeats: int = 5) -> float:
     return 2.0 * size ** 3 / statistics.median(times)
 
 
-def _render(model, dataset, view, blend, termination_eps):
+def _render(model, dataset, view, blend, termination_eps, precision):
     from dualnerf.rendering import render_view
 
     return render_view(model, dataset.c2w[view], dataset.intrinsics[view], dataset.width, dataset.height,
                        float(dataset.near[view]), float(dataset.far[view]), blend=blend,
-                       termination_eps=termination_eps)
+                       termination_eps=termination_eps, mlp_precision=precision)
 
 
 def _evaluated_samples(model, dataset, view, blend, termination_eps) -> int:
@@ -87,6 +88,7 @@ def main(argv: list[str] | None = None) -> None:
     import torch
 
     from benchmarks.profile_edit import _fitted_field
+    from dualnerf import kernels
     from dualnerf.dataset import load_dataset
     from dualnerf.dual_field import make_edit_model
     from dualnerf.flops import field_flops_per_sample
@@ -115,16 +117,18 @@ def main(argv: list[str] | None = None) -> None:
     print("  ".join(f"{h:>12s}" for h in header))
     from dualnerf.rendering import RENDER_TERMINATION_EPS
 
-    cases = [("f_S", static, None, 1, 0.0), ("dual field", dual, (0.1, 0.1), 2, 0.0)]
+    # fp32: evaluation renders; bf16: the edit stage's view updates (update_precision, bf16 MLPs).
+    cases = [("f_S", static, None, 1, 0.0, "fp32"), ("dual field", dual, (0.1, 0.1), 2, 0.0, "fp32"),
+             ("f_S bf16", static, None, 1, 0.0, "bf16"), ("dual bf16", dual, (0.1, 0.1), 2, 0.0, "bf16")]
     if args.termination:
-        cases += [("f_S ERT", static, None, 1, RENDER_TERMINATION_EPS),
-                  ("dual ERT", dual, (0.1, 0.1), 2, RENDER_TERMINATION_EPS)]
-    for label, model, blend, n_fields, eps in cases:
-        _render(model, dataset, view, blend, eps)                               # warm-up
+        cases += [("f_S ERT", static, None, 1, RENDER_TERMINATION_EPS, "fp32"),
+                  ("dual ERT", dual, (0.1, 0.1), 2, RENDER_TERMINATION_EPS, "fp32")]
+    for label, model, blend, n_fields, eps, precision in cases:
+        _render(model, dataset, view, blend, eps, precision)                    # warm-up
         times = []
         for _ in range(args.repeats):
             start = time.perf_counter()
-            _render(model, dataset, view, blend, eps)
+            _render(model, dataset, view, blend, eps, precision)
             times.append(time.perf_counter() - start)
         seconds = statistics.median(times)
         samples = _evaluated_samples(model, dataset, view, blend, eps)
@@ -132,8 +136,9 @@ def main(argv: list[str] | None = None) -> None:
         row = (label, f"{seconds:.3f}", f"{1 / seconds:.2f}", f"{samples / 1e6:.2f}M",
                f"{n_fields * samples / seconds / 1e6:.2f}M", f"{limit:.3f}", f"{seconds / limit:.1f}")
         print("  ".join(f"{c:>12s}" for c in row), flush=True)
-    print("samples/s counts field evaluations (two per sample for the dual field); 'ERT': early ray "
-          "termination (termination_eps=1e-4); target: dual-field render <= 1 s")
+    print("samples/s counts field evaluations (two per sample for the dual field); 'bf16': bfloat16 MLPs "
+          f"({kernels.bf16_path_name()}), as the edit stage's view updates render (the limit stays the float32 "
+          "one); 'ERT': early ray termination (termination_eps=1e-4); target: dual-field render <= 1 s")
 
 
 if __name__ == "__main__":

@@ -27,6 +27,10 @@ empty occupancy cells are not evaluated and get sigma = 0.
 
 Colour: C = sum_i w_i c_i + (1 - sum_i w_i) * background, where background is the model's decoded
 background colour for the ray direction (learned, white or black; see dualnerf.fields).
+
+Without autograd (renders) on the CPU kernels, the occupied samples are packed and composited per ray
+in C++ (kernels.occupied_samples / composite_rays) instead of the torch code, which stays the path for
+training and the reference; the two agree to float32 rounding (tests/test_render_kernels.py).
 """
 from __future__ import annotations
 

@@ -13,6 +13,9 @@ API:
     mlp_inference(features (M,F), sh (M,S), layers) -> (h_sigma, h_color)   the MLP part alone, no autograd
     mlp_precision(precision)            context: field_inference's MLPs in "fp32" (default) or "bf16"
     bf16_path_name() -> str             "amx-tiles" | "emulated": how bf16 MLPs run on this CPU (manifests)
+    vector_path() -> bool               the AVX-512 code runs where the CPU has it (DUALNERF_KERNEL_VECTOR)
+    grid_kernel().occupied_samples / composite_rays / ray_samples: a render's packing, compositing and
+        sampler (called by dualnerf.rendering, whose torch code is their reference)
     can_infer(x, features) -> bool      field_inference takes these points (2 features per table)
     runs_on(x) -> bool                  the kernel is built and x is a float32 CPU tensor
     TableGradients(tables)              persistent gradient buffers + touched-chunk flags that the look-up
