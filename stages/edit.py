@@ -29,7 +29,7 @@ Why 3000: the IDU pulls the consensus of the dataset toward the edit by ~E[s] / 
 (campsite/snow, full DualNeRF, RGB only, one seed): after 2000 iterations the fitted curve of the in-mask
 PSNR to the ground truth had ~20% of its change still to come (time constant ~1200 iterations); after
 3000 iterations 6% (time constant ~1040 iterations, plateau 18.4 dB): converged by the report's <= 10%
-rule. The price is time: the campsite ablation takes ~37 minutes on 2 cores instead of ~26 at 2000
+rule. The price is time: the campsite ablation takes ~31 minutes on 2 cores instead of ~22 at 2000
 (`--set edit.iterations=2000` for the quicker, unconverged run; README "Presets").
 
 Why no LPIPS at this scale: with 1024 rays one 32x32 patch is the whole batch, so every step trains on a
