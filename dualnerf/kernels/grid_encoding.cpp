@@ -530,6 +530,14 @@ namespace {
 constexpr int64_t kInferBlock = 128;
 constexpr int kLanes = 16;   // floats per AVX-512 vector; layer widths are padded to a multiple of this
 
+#ifdef DUALNERF_HAVE_AVX512
+// The first `left` lanes of a 16-lane vector (all from 16 on, none for left <= 0): masked row tails.
+inline __mmask16 first_lanes(int64_t left) {
+  return left >= kLanes ? static_cast<__mmask16>(0xFFFF)
+                        : static_cast<__mmask16>((1u << (left > 0 ? left : 0)) - 1u);
+}
+#endif
+
 struct Layer {
   const float* wt;   // (in, out_pad) row-major: W transposed, zero-padded columns
   const float* b;    // (out_pad), zero-padded
@@ -575,8 +583,7 @@ __attribute__((target("avx512f"))) inline void layer_tile_avx512(const Layer& l,
     for (int v = 0; v < NV; ++v) {
       const __m512 y = relu ? _mm512_max_ps(acc[r][v], zero) : acc[r][v];
       const int left = l.out - kLanes * v;
-      const __mmask16 mask = left >= kLanes ? static_cast<__mmask16>(0xFFFF)
-                                            : static_cast<__mmask16>((1u << (left > 0 ? left : 0)) - 1u);
+      const __mmask16 mask = first_lanes(left);
       _mm512_mask_storeu_ps(out + r * ld_out + kLanes * v, mask, y);
     }
 }
@@ -723,8 +730,7 @@ __attribute__((target("amx-tile,amx-bf16,avx512f,avx512bf16"))) void layer_rows_
   for (int64_t r = 0; r < padded_rows; ++r)
     for (int k = 0; k < k_pad; k += kTile) {
       const int left = r < rows ? l.in - k : 0;
-      const __mmask16 mask = left >= kTile ? static_cast<__mmask16>(0xFFFF)
-                                           : static_cast<__mmask16>((1u << (left > 0 ? left : 0)) - 1u);
+      const __mmask16 mask = first_lanes(left);
       __m512 x = _mm512_maskz_loadu_ps(mask, in + r * ld_in + k);
       if (relu_inputs) x = _mm512_max_ps(x, zero);
       _mm256_storeu_si256(reinterpret_cast<__m256i*>(a + r * k_pad + k), (__m256i)_mm512_cvtneps_pbh(x));
@@ -1461,8 +1467,7 @@ __attribute__((target("avx512f"))) void composite_ray_avx512(const RayComposite&
   const __m512 one = _mm512_set1_ps(1.0f);
   for (int64_t s = 0; s < S_pad; s += kLanes) {
     const int64_t left = S - s;
-    const __mmask16 lanes = left >= kLanes ? static_cast<__mmask16>(0xFFFF)
-                                           : static_cast<__mmask16>((1u << left) - 1u);
+    const __mmask16 lanes = first_lanes(left);
     const __mmask16 ev = evaluated[s / kLanes];
     const __m512 sigma = _mm512_maskz_mov_ps(ev, exp16(_mm512_maskz_loadu_ps(ev, h + s)));
     const __m512 t = _mm512_mul_ps(sigma, _mm512_maskz_loadu_ps(lanes, c.delta + r * S + s));
@@ -1477,8 +1482,7 @@ __attribute__((target("avx512f"))) void composite_ray_avx512(const RayComposite&
   __m512 weight_sum = _mm512_setzero_ps();
   for (int64_t s = 0; s < S_pad; s += kLanes) {
     const int64_t left = S - s;
-    const __mmask16 lanes = left >= kLanes ? static_cast<__mmask16>(0xFFFF)
-                                           : static_cast<__mmask16>((1u << left) - 1u);
+    const __mmask16 lanes = first_lanes(left);
     const __m512 weight = _mm512_maskz_mul_ps(lanes, exp16(_mm512_loadu_ps(w + s)), _mm512_loadu_ps(alpha + s));
     _mm512_storeu_ps(w + s, weight);
     weight_sum = _mm512_add_ps(weight_sum, weight);
@@ -1486,8 +1490,7 @@ __attribute__((target("avx512f"))) void composite_ray_avx512(const RayComposite&
   const int64_t n_color = 3 * (stop - first);
   for (int64_t k = 0; k < n_color; k += kLanes) {
     const int64_t left = n_color - k;
-    const __mmask16 lanes = left >= kLanes ? static_cast<__mmask16>(0xFFFF)
-                                           : static_cast<__mmask16>((1u << left) - 1u);
+    const __mmask16 lanes = first_lanes(left);
     const __m512 x = _mm512_maskz_loadu_ps(lanes, c.hc + 3 * first + k);
     _mm512_mask_storeu_ps(rgb + k, lanes,
                           _mm512_div_ps(one, _mm512_add_ps(one, exp16(_mm512_sub_ps(_mm512_setzero_ps(), x)))));
