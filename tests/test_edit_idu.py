@@ -193,6 +193,22 @@ def test_resume_from_saved_state_is_exact(small, tmp_path):
     assert full.updates == resumed.updates and full.curves == resumed.curves
 
 
+def test_a_shorter_run_is_the_start_of_a_longer_one(small):
+    # The preset's length was chosen by cutting longer runs' convergence curves (stages/edit.py): that
+    # holds only if nothing before iteration N depends on the run's length (blend, temperature and
+    # learning-rate schedules are functions of the iteration; so are the editor's and SA's draws).
+    kwargs = {"edit_rate": 5, "edit_count": 1, "annealing": True, "consistency": True}
+    short = make_idu(small, iterations=20, **kwargs)
+    short.run()
+    long = make_idu(small, iterations=35, **kwargs)
+    long.run(until=20)
+    for (name, a), (_, b) in zip(short.model.state_dict().items(), long.model.state_dict().items()):
+        assert torch.equal(a, b), name
+    np.testing.assert_array_equal(short.images, long.images)
+    assert short.updates == long.updates and short.curves == long.curves
+    assert len(short.updates) == 4
+
+
 @pytest.mark.slow
 def test_snow_edit_moves_the_model_toward_the_ground_truth(small):
     from dualnerf.rendering import render_view
