@@ -23,7 +23,7 @@ API:
 
 Why: a field evaluation reads 13 feature tables (4 dense grids, 9 planes). Through F.grid_sample that is
 13 calls with a (C, M) intermediate, a transpose and a concatenation each; the profile
-(benchmarks.profile_edit) put the look-ups at ~60% of a render. `grid_encoding.cpp` does them in one pass
+(benchmarks.profile_edit) put the look-ups at ~60% of a render. `lookups.cpp` does them in one pass
 over the points on channels-last tables, table by table within blocks of neighbouring samples, and its
 backward accumulates each table's gradient on one thread in point order (no races, repeatable sums).
 
@@ -34,6 +34,7 @@ agree to float32 rounding (tests/test_grid_kernel.py), not bit for bit, so resul
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import subprocess
@@ -43,7 +44,9 @@ from pathlib import Path
 
 import torch
 
-_SOURCE = Path(__file__).with_name("grid_encoding.cpp")
+# One extension from the files beside this one (kernels.h says which does what).
+_SOURCES = sorted(Path(__file__).parent.glob("*.cpp"))
+_HEADERS = sorted(Path(__file__).parent.glob("*.h"))
 _lock = threading.Lock()
 _state: dict = {}
 log = logging.getLogger(__name__)
@@ -63,7 +66,10 @@ def _build():
     try:
         from torch.utils.cpp_extension import load
 
-        return load("dualnerf_grid_encoding", [str(_SOURCE)],
+        # The build is named by the sources' and headers' content: torch rebuilds on changed sources only,
+        # and a changed header must not reuse an extension compiled from the old one.
+        digest = hashlib.sha256(b"".join(p.read_bytes() for p in _SOURCES + _HEADERS)).hexdigest()[:12]
+        return load(f"dualnerf_field_kernels_{digest}", [str(p) for p in _SOURCES],
                     extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"], extra_ldflags=["-fopenmp"], verbose=False)
     # No compiler, no ninja, a failed build: the reference path still works.
     except (OSError, RuntimeError, ImportError, subprocess.CalledProcessError) as error:

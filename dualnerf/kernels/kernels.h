@@ -1,0 +1,225 @@
+// Shared declarations of the field kernels (dualnerf.kernels), one extension built from the files beside
+// this one: lookups.cpp (feature-table look-ups and their backward), inference.cpp (look-ups + MLPs of a
+// field without autograd, bf16/AMX), adam.cpp (the trainer's Adam), sampler.cpp (the render sampler),
+// composite.cpp (a render's packing and compositing) and module.cpp (the Python bindings).
+//
+// Build flags (dualnerf/kernels/__init__.py): -O3 -ffp-contract=off, so no multiply-add is fused unless
+// the code asks for it; that is what keeps each kernel bit-for-bit equal to the torch code it states.
+#pragma once
+
+#include <torch/types.h>   // ATen and the torch:: names; module.cpp adds the Python bindings
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <optional>
+#include <vector>
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <cpuid.h>
+#include <immintrin.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+#define DUALNERF_HAVE_AVX512 1   // compiled in with a target attribute; used where the CPU has it
+#endif
+
+namespace dualnerf {
+
+#ifdef DUALNERF_HAVE_AVX512
+inline bool avx512_available() { return __builtin_cpu_supports("avx512f"); }
+#else
+inline bool avx512_available() { return false; }
+#endif
+
+struct Axis {
+  int64_t i0;   // lower corner index
+  float f;      // weight of the upper corner
+};
+
+inline Axis axis_coord(float c, int64_t size) {
+  float p = (c + 1.0f) * 0.5f * static_cast<float>(size - 1);
+  p = std::min(p > 0.0f ? p : 0.0f, static_cast<float>(size - 1));   // NaN -> 0: never an out-of-range read
+  // p >= 0 here, so truncation is floor (and much cheaper: std::floor is a library call without SSE4.1).
+  int64_t i0 = std::min(static_cast<int64_t>(p), size - 2);
+  return {i0, p - static_cast<float>(i0)};
+}
+
+// Table t: kind 3 = dense grid (D, H, W, C) read by (x, y, z) -> (w, h, d); kind 2 = plane (H, W, C)
+// read by (x[a0], x[a1]) -> (w, h).
+struct Table {
+  int kind;
+  int64_t res;
+  int64_t channels;
+  int64_t stride;   // floats from one cell to the next: channels, or 4 in an interleaved pair table
+  int a0, a1;
+  int64_t column;
+};
+
+inline std::vector<Table> describe(const std::vector<torch::Tensor>& dense, const std::vector<torch::Tensor>& planes) {
+  static const int axes[3][2] = {{0, 1}, {0, 2}, {1, 2}};
+  std::vector<Table> tables;
+  int64_t column = 0;
+  for (const auto& g : dense) {
+    TORCH_CHECK(g.dim() == 5 && g.size(0) == 1 && g.size(2) == g.size(3) && g.size(3) == g.size(4),
+                "dense grid must be (1, C, R, R, R)");
+    tables.push_back({3, g.size(2), g.size(1), g.size(1), 0, 0, column});
+    column += g.size(1);
+  }
+  for (size_t i = 0; i < planes.size(); ++i) {
+    const auto& p = planes[i];
+    TORCH_CHECK(p.dim() == 4 && p.size(0) == 1 && p.size(2) == p.size(3), "plane must be (1, C, R, R)");
+    tables.push_back({2, p.size(2), p.size(1), p.size(1), axes[i % 3][0], axes[i % 3][1], column});
+    column += p.size(1);
+  }
+  return tables;
+}
+
+inline std::vector<torch::Tensor> channels_last(const std::vector<torch::Tensor>& tensors, bool dense) {
+  std::vector<torch::Tensor> out;
+  for (const auto& t : tensors) {
+    TORCH_CHECK(t.scalar_type() == torch::kFloat32 && t.device().is_cpu(), "tables must be float32 CPU tensors");
+    out.push_back(t.contiguous(dense ? at::MemoryFormat::ChannelsLast3d : at::MemoryFormat::ChannelsLast));
+  }
+  return out;
+}
+
+inline int64_t table_cells(const Table& t) { return t.kind == 3 ? t.res * t.res * t.res : t.res * t.res; }
+
+inline int64_t total_columns(const std::vector<Table>& tables) {
+  return tables.empty() ? 0 : tables.back().column + tables.back().channels;
+}
+
+// Channels-last copies of the tables (no copy when they are stored so) appended to `keep`, which holds
+// them alive while the kernel reads their data pointers.
+inline std::vector<const float*> table_data(const std::vector<torch::Tensor>& dense, const std::vector<torch::Tensor>& planes,
+                                     std::vector<torch::Tensor>& keep) {
+  std::vector<const float*> data;
+  for (auto& g : channels_last(dense, true)) { keep.push_back(g); data.push_back(g.data_ptr<float>()); }
+  for (auto& p : channels_last(planes, false)) { keep.push_back(p); data.push_back(p.data_ptr<float>()); }
+  return data;
+}
+
+// Blocks of points in parallel, each handed to block(begin, end): a block's look-ups into one table hit
+// nearby cells (neighbouring samples along a ray), which stay in cache while the block runs table by table.
+template <typename Block>
+void for_each_block(int64_t m, Block&& block) {
+  constexpr int64_t kBlock = 1024;
+  at::parallel_for(0, (m + kBlock - 1) / kBlock, 1, [&](int64_t block_begin, int64_t block_end) {
+    for (int64_t b = block_begin; b < block_end; ++b) block(b * kBlock, std::min(m, (b + 1) * kBlock));
+  });
+}
+
+// Calls visit(offset_in_table, weight) for the corners of point `x` in table `t`.
+template <typename Visit>
+inline void corners(const Table& t, const float* x, Visit&& visit) {
+  const int64_t r = t.res, c = t.stride;
+  if (t.kind == 3) {
+    Axis ax = axis_coord(x[0], r), ay = axis_coord(x[1], r), az = axis_coord(x[2], r);
+    const int64_t base = ((az.i0 * r + ay.i0) * r + ax.i0) * c;
+    const int64_t sx = c, sy = r * c, sz = r * r * c;
+    const float wx[2] = {1.0f - ax.f, ax.f}, wy[2] = {1.0f - ay.f, ay.f}, wz[2] = {1.0f - az.f, az.f};
+    for (int dz = 0; dz < 2; ++dz)
+      for (int dy = 0; dy < 2; ++dy) {
+        const float wzy = wz[dz] * wy[dy];
+        const int64_t row = base + dz * sz + dy * sy;
+        visit(row, wzy * wx[0]);
+        visit(row + sx, wzy * wx[1]);
+      }
+  } else {
+    Axis au = axis_coord(x[t.a0], r), av = axis_coord(x[t.a1], r);
+    const int64_t base = (av.i0 * r + au.i0) * c;
+    const int64_t su = c, sv = r * c;
+    visit(base, (1.0f - av.f) * (1.0f - au.f));
+    visit(base + su, (1.0f - av.f) * au.f);
+    visit(base + sv, av.f * (1.0f - au.f));
+    visit(base + sv + su, av.f * au.f);
+  }
+}
+
+// Chunks of gradient values that encode_backward_into flags as touched (for adam_step_touched). Chunks
+// never straddle a corner's features (1, 2, 4 or 8 values at an offset that is a multiple of their count).
+constexpr int64_t kTouchChunk = 16;
+
+constexpr int kLanes = 16;   // floats per AVX-512 vector; MLP layer widths are padded to a multiple of this
+
+#ifdef DUALNERF_HAVE_AVX512
+// The first `left` lanes of a 16-lane vector (all from 16 on, none for left <= 0): masked row tails.
+inline __mmask16 first_lanes(int64_t left) {
+  return left >= kLanes ? static_cast<__mmask16>(0xFFFF)
+                        : static_cast<__mmask16>((1u << (left > 0 ? left : 0)) - 1u);
+}
+
+// exp of 16 floats: exp(x) = 2^n exp(r) with n = round(x / ln 2) and r = x - n ln 2 (ln 2 in two parts, so r
+// is exact to float rounding, |r| <= ln 2 / 2), exp(r) by its Taylor polynomial to degree 7 (truncation
+// < 1e-8 relative): within a few ulp of std::exp. Inputs below -87 give ~1e-38 instead of a denormal or 0.
+__attribute__((target("avx512f"))) inline __m512 exp16(__m512 x) {
+  x = _mm512_min_ps(_mm512_max_ps(x, _mm512_set1_ps(-87.0f)), _mm512_set1_ps(88.0f));
+  const __m512 n = _mm512_roundscale_ps(_mm512_mul_ps(x, _mm512_set1_ps(1.44269504088896341f)),
+                                        _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+  __m512 r = _mm512_fnmadd_ps(n, _mm512_set1_ps(0.693145751953125f), x);      // ln 2's leading bits
+  r = _mm512_fnmadd_ps(n, _mm512_set1_ps(1.428606765330187e-06f), r);        // and the rest
+  __m512 p = _mm512_set1_ps(1.0f / 5040.0f);
+  for (const float k : {1.0f / 720.0f, 1.0f / 120.0f, 1.0f / 24.0f, 1.0f / 6.0f, 0.5f, 1.0f, 1.0f})
+    p = _mm512_fmadd_ps(p, r, _mm512_set1_ps(k));
+  return _mm512_scalef_ps(p, n);
+}
+#endif
+
+// Every table's features for points [begin, end) into rows (i - row0) of out_a (and out_b: the second
+// field's tables data_b, when given); lookups.cpp.
+void lookup_range(const std::vector<Table>& tables, const std::vector<const float*>& data_a,
+                  const std::vector<const float*>* data_b, const float* xp, float* out_a, float* out_b,
+                  int64_t n_out, int64_t begin, int64_t end, int64_t row0, bool vector_path);
+
+}  // namespace dualnerf
+
+// The functions module.cpp binds, each defined and documented in the file named above it.
+
+// lookups.cpp
+torch::Tensor encode_forward(torch::Tensor x, std::vector<torch::Tensor> dense, std::vector<torch::Tensor> planes,
+                             bool vector_path);
+std::vector<torch::Tensor> encode_forward_pair(torch::Tensor x, std::vector<torch::Tensor> dense_a,
+                                               std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> dense_b,
+                                               std::vector<torch::Tensor> planes_b, bool vector_path);
+std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
+                                           std::vector<torch::Tensor> planes, bool vector_path);
+void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
+                          std::vector<torch::Tensor> planes, std::vector<torch::Tensor> grads,
+                          std::vector<torch::Tensor> touched, bool vector_path);
+void zero_touched(torch::Tensor grad, torch::Tensor touched);
+
+// inference.cpp
+std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, std::vector<torch::Tensor> dense_a,
+                                           std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> mlp_a,
+                                           std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b,
+                                           std::vector<torch::Tensor> mlp_b, double w_density, double w_color,
+                                           std::vector<torch::Tensor> interleaved, std::optional<torch::Tensor> sh_index,
+                                           bool vector_path, bool bf16, bool amx);
+std::vector<torch::Tensor> interleave_pair(std::vector<torch::Tensor> dense_a, std::vector<torch::Tensor> planes_a,
+                                           std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b);
+std::vector<torch::Tensor> mlp_inference(torch::Tensor features, torch::Tensor sh, std::vector<torch::Tensor> mlp,
+                                         bool vector_path);
+bool vector_path_available();
+bool amx_path_available();
+
+// adam.cpp
+void adam_step(torch::Tensor param, torch::Tensor grad, torch::Tensor exp_avg, torch::Tensor exp_avg_sq, double beta1,
+               double beta2, double step_size, double bias_correction2_sqrt, double eps, bool skip_zero);
+void adam_step_touched(torch::Tensor param, torch::Tensor grad, torch::Tensor touched, torch::Tensor exp_avg,
+                       torch::Tensor exp_avg_sq, double beta1, double beta2, double step_size,
+                       double bias_correction2_sqrt, double eps);
+
+// sampler.cpp
+std::vector<torch::Tensor> ray_samples(torch::Tensor origins, torch::Tensor dirs, torch::Tensor t_start,
+                                       torch::Tensor t_end, torch::Tensor density, torch::Tensor mask, double scale,
+                                       int64_t n_proposal, int64_t n_samples, double uniform_share,
+                                       torch::Tensor jitter, bool vector_path);
+
+// composite.cpp
+std::vector<torch::Tensor> occupied_samples(torch::Tensor origins, torch::Tensor dirs, torch::Tensor t,
+                                            torch::Tensor mask);
+std::vector<torch::Tensor> composite_rays(torch::Tensor h_sigma, torch::Tensor h_color, torch::Tensor flat,
+                                          torch::Tensor starts, torch::Tensor delta, torch::Tensor background,
+                                          double max_h_sigma, bool vector_path);

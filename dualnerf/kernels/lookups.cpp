@@ -1,0 +1,384 @@
+// Fused feature-grid look-ups for dualnerf.encoding (dense trilinear grids + bilinear xy/xz/yz planes).
+//
+// One pass over the points computes every table's interpolation, instead of one F.grid_sample call per
+// table with its (C, M) intermediate, transpose and concatenation. Tables are read in channels-last
+// layout (a point's C features at one corner are adjacent), so a corner costs one cache line.
+// Semantics equal F.grid_sample(mode="bilinear", padding_mode="border", align_corners=True): the
+// coordinate in [-1, 1] maps to (c + 1) / 2 * (size - 1), clamped to [0, size - 1].
+//
+// Forward: parallel over points (each output row written by one thread: deterministic).
+// Backward: parallel over tables; each table's gradient is accumulated by one thread in point order,
+// so there are no races and the sums are bit-for-bit repeatable.
+#include "kernels.h"
+
+using namespace dualnerf;
+
+// Interpolates table `t` for points [begin, end) into out[:, t.column : t.column + C]. C is a template
+// parameter so the per-corner channel loop unrolls.
+template <int C>
+void forward_table(const Table& t, const float* table, const float* xp, float* op, int64_t n_out, int64_t begin,
+                   int64_t end, int64_t row0 = 0) {
+  for (int64_t i = begin; i < end; ++i) {
+    float acc[C] = {};
+    corners(t, xp + 3 * i, [&](int64_t offset, float w) {
+      for (int j = 0; j < C; ++j) acc[j] += w * table[offset + j];
+    });
+    float* oi = op + n_out * (i - row0) + t.column;
+    for (int j = 0; j < C; ++j) oi[j] = acc[j];
+  }
+}
+
+void forward_any(const Table& t, const float* table, const float* xp, float* op, int64_t n_out, int64_t begin,
+                 int64_t end, int64_t row0 = 0) {
+  switch (t.channels) {
+    case 1: return forward_table<1>(t, table, xp, op, n_out, begin, end, row0);
+    case 2: return forward_table<2>(t, table, xp, op, n_out, begin, end, row0);
+    case 4: return forward_table<4>(t, table, xp, op, n_out, begin, end, row0);
+    case 8: return forward_table<8>(t, table, xp, op, n_out, begin, end, row0);
+  }
+  TORCH_CHECK(false, "grid encoding kernel: features per table must be 1, 2, 4 or 8");
+}
+
+// The dual field's two fields (same architecture, same points): every corner's index and weight is
+// computed once and applied to both fields' tables. Each output equals encode_forward's for that field
+// bit for bit (the same operations per field in the same order).
+template <int C>
+void forward_table_pair(const Table& t, const float* table_a, const float* table_b, const float* xp, float* oa,
+                        float* ob, int64_t n_out, int64_t begin, int64_t end, int64_t row0 = 0) {
+  for (int64_t i = begin; i < end; ++i) {
+    float acc_a[C] = {}, acc_b[C] = {};
+    corners(t, xp + 3 * i, [&](int64_t offset, float w) {
+      for (int j = 0; j < C; ++j) acc_a[j] += w * table_a[offset + j];
+      for (int j = 0; j < C; ++j) acc_b[j] += w * table_b[offset + j];
+    });
+    for (int j = 0; j < C; ++j) oa[n_out * (i - row0) + t.column + j] = acc_a[j];
+    for (int j = 0; j < C; ++j) ob[n_out * (i - row0) + t.column + j] = acc_b[j];
+  }
+}
+
+// ---- Look-ups of 16 points at once (AVX-512 gathers) ----
+//
+// A look-up is ~60 scalar instructions per table and point (coordinates, weights, corner indices, loads):
+// the profile had it instruction-bound, not memory-bound (the tables sit in the last-level cache). Here
+// 16 points go through the same operations lane by lane, in the same order (multiply, then add: the
+// build has no contraction), so every output equals the scalar code's bit for bit (tested). Tables of
+// 2 features only (the fields' layout), with int32 offsets (tables below 2^31 floats); the rest of a
+// range, and every other table, runs the scalar code.
+
+namespace {
+
+constexpr int64_t kLookupLanes = 16;
+
+bool vector_lookup_applies(const Table& t) {
+  return t.channels == 2 && table_cells(t) * t.stride < (int64_t{1} << 31);
+}
+
+// Coordinates of points [begin, begin + n) as three arrays (x's, y's, z's): what the 16-lane code loads.
+std::vector<float> coordinate_arrays(const float* xp, int64_t begin, int64_t n) {
+  std::vector<float> xs(3 * n);
+  for (int64_t i = 0; i < n; ++i)
+    for (int a = 0; a < 3; ++a) xs[a * n + i] = xp[3 * (begin + i) + a];
+  return xs;
+}
+
+#ifdef DUALNERF_HAVE_AVX512
+
+struct AxisV {
+  __m512i i0;
+  __m512 f;
+};
+
+// axis_coord on 16 lanes: max(p, 0) gives 0 for NaN as the scalar test does, and +0 for -0.
+__attribute__((target("avx512f"))) inline AxisV axis_coord_v(__m512 c, int64_t size) {
+  const __m512 top = _mm512_set1_ps(static_cast<float>(size - 1));
+  __m512 p = _mm512_mul_ps(_mm512_mul_ps(_mm512_add_ps(c, _mm512_set1_ps(1.0f)), _mm512_set1_ps(0.5f)), top);
+  p = _mm512_min_ps(_mm512_max_ps(p, _mm512_setzero_ps()), top);
+  const __m512i i0 = _mm512_min_epi32(_mm512_cvttps_epi32(p), _mm512_set1_epi32(static_cast<int>(size - 2)));
+  return {i0, _mm512_sub_ps(p, _mm512_cvtepi32_ps(i0))};
+}
+
+// One corner (offset vector, weight vector) into the accumulators of one or two tables.
+template <bool Pair>
+__attribute__((target("avx512f"))) inline void gather_corner(__m512i offset, __m512 w, const float* ta,
+                                                             const float* tb, __m512 acc[4]) {
+  acc[0] = _mm512_add_ps(acc[0], _mm512_mul_ps(w, _mm512_i32gather_ps(offset, ta, 4)));
+  acc[1] = _mm512_add_ps(acc[1], _mm512_mul_ps(w, _mm512_i32gather_ps(offset, ta + 1, 4)));
+  if (Pair) {
+    acc[2] = _mm512_add_ps(acc[2], _mm512_mul_ps(w, _mm512_i32gather_ps(offset, tb, 4)));
+    acc[3] = _mm512_add_ps(acc[3], _mm512_mul_ps(w, _mm512_i32gather_ps(offset, tb + 1, 4)));
+  }
+}
+
+// The corners of 16 points in table t: offsets (floats from the table's start, t.stride apart per cell)
+// and weights, in the order of the scalar corners(); returns their count (8 for a grid, 4 for a plane).
+__attribute__((target("avx512f"))) inline int corners16(const Table& t, const float* xs, int64_t stride,
+                                                        __m512i off[8], __m512 w[8]) {
+  const int r = static_cast<int>(t.res), c = static_cast<int>(t.stride);
+  const __m512 one = _mm512_set1_ps(1.0f);
+  if (t.kind == 3) {
+    const AxisV ax = axis_coord_v(_mm512_loadu_ps(xs), r), ay = axis_coord_v(_mm512_loadu_ps(xs + stride), r),
+                az = axis_coord_v(_mm512_loadu_ps(xs + 2 * stride), r);
+    const __m512i rr = _mm512_set1_epi32(r);
+    const __m512i base = _mm512_mullo_epi32(
+        _mm512_add_epi32(_mm512_mullo_epi32(_mm512_add_epi32(_mm512_mullo_epi32(az.i0, rr), ay.i0), rr), ax.i0),
+        _mm512_set1_epi32(c));
+    const __m512i sx = _mm512_set1_epi32(c), sy = _mm512_set1_epi32(c * r), sz = _mm512_set1_epi32(c * r * r);
+    const __m512 wx[2] = {_mm512_sub_ps(one, ax.f), ax.f}, wy[2] = {_mm512_sub_ps(one, ay.f), ay.f},
+                 wz[2] = {_mm512_sub_ps(one, az.f), az.f};
+    int n = 0;
+    for (int dz = 0; dz < 2; ++dz)
+      for (int dy = 0; dy < 2; ++dy) {
+        const __m512 wzy = _mm512_mul_ps(wz[dz], wy[dy]);
+        __m512i row = base;
+        if (dz) row = _mm512_add_epi32(row, sz);
+        if (dy) row = _mm512_add_epi32(row, sy);
+        off[n] = row;
+        w[n++] = _mm512_mul_ps(wzy, wx[0]);
+        off[n] = _mm512_add_epi32(row, sx);
+        w[n++] = _mm512_mul_ps(wzy, wx[1]);
+      }
+    return n;
+  }
+  const AxisV au = axis_coord_v(_mm512_loadu_ps(xs + t.a0 * stride), r),
+              av = axis_coord_v(_mm512_loadu_ps(xs + t.a1 * stride), r);
+  const __m512i base = _mm512_mullo_epi32(_mm512_add_epi32(_mm512_mullo_epi32(av.i0, _mm512_set1_epi32(r)), au.i0),
+                                          _mm512_set1_epi32(c));
+  const __m512i su = _mm512_set1_epi32(c), sv = _mm512_set1_epi32(c * r);
+  const __m512 u0 = _mm512_sub_ps(one, au.f), v0 = _mm512_sub_ps(one, av.f);
+  off[0] = base;
+  w[0] = _mm512_mul_ps(v0, u0);
+  off[1] = _mm512_add_epi32(base, su);
+  w[1] = _mm512_mul_ps(v0, au.f);
+  off[2] = _mm512_add_epi32(base, sv);
+  w[2] = _mm512_mul_ps(av.f, u0);
+  off[3] = _mm512_add_epi32(_mm512_add_epi32(base, sv), su);
+  w[3] = _mm512_mul_ps(av.f, au.f);
+  return 4;
+}
+
+// Table t (2 features) for the 16 points whose coordinates are xs[0..2][0..15] (structure of arrays),
+// written to rows out + lane * n_out + t.column (and out_b likewise for the second table).
+template <bool Pair>
+__attribute__((target("avx512f"))) void lookup16(const Table& t, const float* ta, const float* tb, const float* xs,
+                                                 int64_t stride, float* oa, float* ob, int64_t n_out) {
+  __m512i off[8];
+  __m512 w[8];
+  const int n = corners16(t, xs, stride, off, w);
+  __m512 acc[4] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
+  for (int k = 0; k < n; ++k) gather_corner<Pair>(off[k], w[k], ta, tb, acc);
+  const __m512i rows = _mm512_mullo_epi32(_mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15),
+                                          _mm512_set1_epi32(static_cast<int>(n_out)));
+  _mm512_i32scatter_ps(oa + t.column, rows, acc[0], 4);
+  _mm512_i32scatter_ps(oa + t.column + 1, rows, acc[1], 4);
+  if (Pair) {
+    _mm512_i32scatter_ps(ob + t.column, rows, acc[2], 4);
+    _mm512_i32scatter_ps(ob + t.column + 1, rows, acc[3], 4);
+  }
+}
+
+// corners16 into plain arrays (the backward's scalar additions read them lane by lane).
+__attribute__((target("avx512f"))) inline int corners16_to_arrays(const Table& t, const float* xs, int64_t stride,
+                                                                  int32_t offsets[8][16], float weights[8][16]) {
+  __m512i off[8];
+  __m512 w[8];
+  const int n = corners16(t, xs, stride, off, w);
+  for (int k = 0; k < n; ++k) {
+    _mm512_storeu_si512(offsets[k], off[k]);
+    _mm512_storeu_ps(weights[k], w[k]);
+  }
+  return n;
+}
+
+#endif
+
+}  // namespace
+
+// Every table's features for points [begin, end) into rows (i - row0) of out_a (and out_b: the second
+// field's tables data_b, when given). vector_path: 16 points at a time where the tables allow it.
+void dualnerf::lookup_range(const std::vector<Table>& tables, const std::vector<const float*>& data_a,
+                  const std::vector<const float*>* data_b, const float* xp, float* out_a, float* out_b,
+                  int64_t n_out, int64_t begin, int64_t end, int64_t row0, bool vector_path) {
+  auto scalar = [&](size_t k, int64_t from, int64_t to) {
+    if (data_b) forward_table_pair<2>(tables[k], data_a[k], (*data_b)[k], xp, out_a, out_b, n_out, from, to, row0);
+    else forward_any(tables[k], data_a[k], xp, out_a, n_out, from, to, row0);
+  };
+  int64_t vector_end = begin;
+#ifdef DUALNERF_HAVE_AVX512
+  if (vector_path && avx512_available()) {
+    vector_end = begin + (end - begin) / kLookupLanes * kLookupLanes;
+    const int64_t n = vector_end - begin;
+    const std::vector<float> xs = coordinate_arrays(xp, begin, n);
+    for (size_t k = 0; k < tables.size(); ++k) {
+      if (!vector_lookup_applies(tables[k])) {
+        scalar(k, begin, vector_end);
+        continue;
+      }
+      for (int64_t i = 0; i < n; i += kLookupLanes) {
+        float* oa = out_a + n_out * (begin + i - row0);
+        if (data_b)
+          lookup16<true>(tables[k], data_a[k], (*data_b)[k], xs.data() + i, n, oa, out_b + n_out * (begin + i - row0),
+                         n_out);
+        else
+          lookup16<false>(tables[k], data_a[k], nullptr, xs.data() + i, n, oa, nullptr, n_out);
+      }
+    }
+  }
+#endif
+  if (vector_end < end)
+    for (size_t k = 0; k < tables.size(); ++k) scalar(k, vector_end, end);
+}
+
+
+torch::Tensor encode_forward(torch::Tensor x, std::vector<torch::Tensor> dense, std::vector<torch::Tensor> planes,
+                             bool vector_path) {
+  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32, "x must be (M, 3) float32");
+  x = x.contiguous();
+  const auto tables = describe(dense, planes);
+  for (const auto& t : tables)
+    TORCH_CHECK(t.channels == 1 || t.channels == 2 || t.channels == 4 || t.channels == 8,
+                "grid encoding kernel: features per table must be 1, 2, 4 or 8");
+  std::vector<torch::Tensor> keep;
+  const auto data = table_data(dense, planes, keep);
+  const int64_t m = x.size(0), n_out = total_columns(tables);
+  auto out = torch::empty({m, n_out}, x.options());
+  const float* xp = x.data_ptr<float>();
+  float* op = out.data_ptr<float>();
+  for_each_block(m, [&](int64_t begin, int64_t end) {
+    lookup_range(tables, data, nullptr, xp, op, nullptr, n_out, begin, end, 0, vector_path);
+  });
+  return out;
+}
+
+std::vector<torch::Tensor> encode_forward_pair(torch::Tensor x, std::vector<torch::Tensor> dense_a,
+                                               std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> dense_b,
+                                               std::vector<torch::Tensor> planes_b, bool vector_path) {
+  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32, "x must be (M, 3) float32");
+  x = x.contiguous();
+  const auto tables = describe(dense_a, planes_a);
+  const auto tables_b = describe(dense_b, planes_b);
+  TORCH_CHECK(tables.size() == tables_b.size(), "the two fields must have the same tables");
+  for (size_t k = 0; k < tables.size(); ++k)
+    TORCH_CHECK(tables[k].res == tables_b[k].res && tables[k].channels == tables_b[k].channels &&
+                    tables[k].channels == 2,
+                "the two fields must have the same tables, with 2 features each (pair kernel)");
+  std::vector<torch::Tensor> keep;
+  const auto data_a = table_data(dense_a, planes_a, keep);
+  const auto data_b = table_data(dense_b, planes_b, keep);
+  const int64_t m = x.size(0), n_out = total_columns(tables);
+  auto out_a = torch::empty({m, n_out}, x.options());
+  auto out_b = torch::empty({m, n_out}, x.options());
+  const float* xp = x.data_ptr<float>();
+  float* oa = out_a.data_ptr<float>();
+  float* ob = out_b.data_ptr<float>();
+  for_each_block(m, [&](int64_t begin, int64_t end) {
+    lookup_range(tables, data_a, &data_b, xp, oa, ob, n_out, begin, end, 0, vector_path);
+  });
+  return {out_a, out_b};
+}
+
+
+// Adds w * grad_out to every table's gradient: parallel over tables, each accumulated by one thread in
+// point order (no races, bit-for-bit repeatable sums). flags[k], where given, marks the touched chunks.
+void accumulate_gradients(const std::vector<Table>& tables, const float* xp, const float* gp, int64_t m,
+                          int64_t n_out, const std::vector<float*>& grads, const std::vector<uint8_t*>& flags,
+                          bool vector_path) {
+  // With AVX-512, each group of 16 points gets its corner offsets and weights from corners16 (the scalar
+  // corners()'s bits, see lookup16); the additions stay scalar, point by point and corner by corner in
+  // the scalar order, so the sums are the same bits.
+  const bool vec = vector_path && avx512_available();
+  const int64_t n_vec = vec ? m / kLookupLanes * kLookupLanes : 0;
+  const std::vector<float> xs = coordinate_arrays(xp, 0, n_vec);
+  at::parallel_for(0, static_cast<int64_t>(tables.size()), 1, [&](int64_t begin, int64_t end) {
+    for (int64_t k = begin; k < end; ++k) {
+      const Table& t = tables[k];
+      float* grad = grads[k];
+      uint8_t* touched = flags.empty() ? nullptr : flags[k];
+      const int64_t c = t.channels;
+      auto add = [&](const float* go, int64_t offset, float w) {
+        for (int64_t j = 0; j < c; ++j) grad[offset + j] += w * go[j];
+        if (touched != nullptr) touched[offset / kTouchChunk] = 1;
+      };
+      int64_t i = 0;
+#ifdef DUALNERF_HAVE_AVX512
+      if (n_vec > 0 && vector_lookup_applies(t)) {
+        for (; i < n_vec; i += kLookupLanes) {
+          int32_t offsets[8][kLookupLanes];
+          float weights[8][kLookupLanes];
+          const int n = corners16_to_arrays(t, xs.data() + i, n_vec, offsets, weights);
+          for (int64_t lane = 0; lane < kLookupLanes; ++lane) {
+            const float* go = gp + n_out * (i + lane) + t.column;
+            for (int corner = 0; corner < n; ++corner) add(go, offsets[corner][lane], weights[corner][lane]);
+          }
+        }
+      }
+#endif
+      for (; i < m; ++i) {
+        const float* go = gp + n_out * i + t.column;
+        corners(t, xp + 3 * i, [&](int64_t offset, float w) { add(go, offset, w); });
+      }
+    }
+  });
+}
+
+std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
+                                           std::vector<torch::Tensor> planes, bool vector_path) {
+  x = x.contiguous();
+  grad_out = grad_out.contiguous();
+  const auto tables = describe(dense, planes);
+  const int64_t m = x.size(0), n_out = total_columns(tables);
+  TORCH_CHECK(grad_out.size(0) == m && grad_out.size(1) == n_out, "grad_out must be (M, total features)");
+  // Gradients in the parameters' own shape, channels-last like the tables (the kernel's write order).
+  std::vector<torch::Tensor> grads;
+  std::vector<float*> data;
+  for (auto& g : dense) grads.push_back(torch::zeros_like(g, at::MemoryFormat::ChannelsLast3d));
+  for (auto& p : planes) grads.push_back(torch::zeros_like(p, at::MemoryFormat::ChannelsLast));
+  for (auto& g : grads) data.push_back(g.data_ptr<float>());
+  accumulate_gradients(tables, x.data_ptr<float>(), grad_out.data_ptr<float>(), m, n_out, data, {}, vector_path);
+  return grads;
+}
+
+// The backward of encode_forward into persistent gradient buffers (dualnerf.kernels.TableGradients)
+// instead of freshly zero-filled tensors: adds to grads[k] exactly as encode_backward does (a zeroed
+// buffer ends up with the same bits) and flags the touched chunks in touched[k].
+void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
+                          std::vector<torch::Tensor> planes, std::vector<torch::Tensor> grads,
+                          std::vector<torch::Tensor> touched, bool vector_path) {
+  x = x.contiguous();
+  grad_out = grad_out.contiguous();
+  const auto tables = describe(dense, planes);
+  const int64_t m = x.size(0), n_out = total_columns(tables);
+  TORCH_CHECK(grad_out.size(0) == m && grad_out.size(1) == n_out, "grad_out must be (M, total features)");
+  TORCH_CHECK(grads.size() == tables.size() && touched.size() == tables.size(), "one buffer per table expected");
+  std::vector<torch::Tensor> layout = channels_last(dense, true);
+  for (auto& p : channels_last(planes, false)) layout.push_back(p);
+  std::vector<float*> data;
+  std::vector<uint8_t*> flags;
+  for (size_t k = 0; k < tables.size(); ++k) {
+    TORCH_CHECK(grads[k].scalar_type() == torch::kFloat32 && grads[k].strides() == layout[k].strides() &&
+                    grads[k].sizes() == layout[k].sizes(),
+                "gradient buffers must be float32 and laid out like their (channels-last) table");
+    TORCH_CHECK(touched[k].scalar_type() == torch::kUInt8 && touched[k].is_contiguous() &&
+                    touched[k].numel() == (grads[k].numel() + kTouchChunk - 1) / kTouchChunk,
+                "touched flags must be uint8, one per ", kTouchChunk, " gradient values");
+    data.push_back(grads[k].data_ptr<float>());
+    flags.push_back(touched[k].data_ptr<uint8_t>());
+  }
+  accumulate_gradients(tables, x.data_ptr<float>(), grad_out.data_ptr<float>(), m, n_out, data, flags, vector_path);
+}
+
+
+// Zeroes the flagged chunks of a gradient buffer and their flags (a TableGradients reset).
+void zero_touched(torch::Tensor grad, torch::Tensor touched) {
+  TORCH_CHECK(grad.scalar_type() == torch::kFloat32 && grad.is_non_overlapping_and_dense() &&
+                  touched.scalar_type() == torch::kUInt8 && touched.numel() == (grad.numel() + kTouchChunk - 1) / kTouchChunk,
+              "zero_touched: a float32 buffer and one uint8 flag per ", kTouchChunk, " values expected");
+  float* g = grad.data_ptr<float>();
+  uint8_t* flags = touched.data_ptr<uint8_t>();
+  const int64_t n = grad.numel();
+  for (int64_t c = 0; c < touched.numel(); ++c) {
+    if (!flags[c]) continue;
+    std::fill(g + c * kTouchChunk, g + std::min(n, (c + 1) * kTouchChunk), 0.0f);
+    flags[c] = 0;
+  }
+}
+
