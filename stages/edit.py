@@ -32,7 +32,7 @@ CCI (not converged); 6.2-8.5% after 2800 and 3.4-5.6% after 3000 (the report's <
 temperature and learning-rate schedules are functions of the iteration), so the 2800 figures are the
 3000-iteration runs' curves cut at 2800, refitted. 2800 is the shortest of these at which every row
 keeps a margin to the 10% line (2700: IN2N and CCI 9%), and it brings the campsite ablation on 2 cores
-under 30 minutes (~28 instead of ~31 at 3000; README "Presets").
+under 30 minutes (24.5 measured on a quiet host, 28.9-30.9 at 3000 on a busier one; README "Presets").
 
 Why no LPIPS at this scale: with 1024 rays one 32x32 patch is the whole batch, so every step trains on a
 single patch of a single view. Measured on the same edit at 1500 iterations: in-mask PSNR 12.7 dB with
