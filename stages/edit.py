@@ -28,11 +28,13 @@ Why 2800: the IDU pulls the consensus of the dataset toward the edit by ~E[s] / 
 ~N_views x edit_rate / E[s] ~ 840 iterations on campsite, longer while the model lags. Measured
 (campsite/snow, RGB only, seed 0), the report's fitted share of the in-mask change still to come, per
 ablation row: after 2000 iterations 20-25% for the dual-field rows and no plateau in sight for IN2N and
-CCI (not converged); 6.2-8.5% after 2800 and 3.4-5.6% after 3000 (the report's <= 10% rule: converged). A run's first N iterations do not depend on its length (the blend,
-temperature and learning-rate schedules are functions of the iteration), so the 2800 figures are the
-3000-iteration runs' curves cut at 2800, refitted. 2800 is the shortest of these at which every row
-keeps a margin to the 10% line (2700: IN2N and CCI 9%), and it brings the campsite ablation on 2 cores
-under 30 minutes (24.5 measured on a quiet host, 28.9-30.9 at 3000 on a busier one; README "Presets").
+CCI (not converged); 6.2-8.5% after 2800 and 3.4-5.6% after 3000 (the report's <= 10% rule: converged).
+A run's first N iterations do not depend on its length (the blend, temperature and learning-rate
+schedules are functions of the iteration; tests/test_edit_idu.py), so the 3000-iteration runs' curves cut
+at N and refitted predict an N-iteration run: the cut at 2800 gave the measured 2800-iteration shares.
+2800 is the shortest cut at which every row keeps a margin to the 10% line (2700: IN2N and CCI 9%), and
+it brings the campsite ablation on 2 cores under 30 minutes (24.5 measured on a quiet host, 28.9-30.9 at
+3000 on a busier one; README "Presets").
 
 Why no LPIPS at this scale: with 1024 rays one 32x32 patch is the whole batch, so every step trains on a
 single patch of a single view. Measured on the same edit at 1500 iterations: in-mask PSNR 12.7 dB with

@@ -73,7 +73,7 @@ def _build():
                     extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"], extra_ldflags=["-fopenmp"], verbose=False)
     # No compiler, no ninja, a failed build: the reference path still works.
     except (OSError, RuntimeError, ImportError, subprocess.CalledProcessError) as error:
-        log.warning("dualnerf: the fused grid-encoding kernel could not be built (%s); using the plain torch "
+        log.warning("dualnerf: the C++ field kernels could not be built (%s); using the plain torch "
                     "reference path, which is ~2x slower. Install a C++ compiler and ninja, or set "
                     "DUALNERF_KERNELS=0 to silence this.", str(error).splitlines()[0] if str(error) else error)
         return None

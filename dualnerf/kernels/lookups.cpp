@@ -320,20 +320,31 @@ void accumulate_gradients(const std::vector<Table>& tables, const float* xp, con
   });
 }
 
+// What both backward entry points check and read: contiguous points and output gradients, the tables.
+struct BackwardInputs {
+  torch::Tensor x, grad_out;
+  std::vector<Table> tables;
+  int64_t m, n_out;
+  BackwardInputs(const torch::Tensor& points, const torch::Tensor& grad, const std::vector<torch::Tensor>& dense,
+                 const std::vector<torch::Tensor>& planes)
+      : x(points.contiguous()), grad_out(grad.contiguous()), tables(describe(dense, planes)), m(x.size(0)),
+        n_out(total_columns(tables)) {
+    TORCH_CHECK(grad_out.size(0) == m && grad_out.size(1) == n_out, "grad_out must be (M, total features)");
+  }
+};
+
 std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
                                            std::vector<torch::Tensor> planes, bool vector_path) {
-  x = x.contiguous();
-  grad_out = grad_out.contiguous();
-  const auto tables = describe(dense, planes);
-  const int64_t m = x.size(0), n_out = total_columns(tables);
-  TORCH_CHECK(grad_out.size(0) == m && grad_out.size(1) == n_out, "grad_out must be (M, total features)");
+  const BackwardInputs in(x, grad_out, dense, planes);
+  const auto& tables = in.tables;
   // Gradients in the parameters' own shape, channels-last like the tables (the kernel's write order).
   std::vector<torch::Tensor> grads;
   std::vector<float*> data;
   for (auto& g : dense) grads.push_back(torch::zeros_like(g, at::MemoryFormat::ChannelsLast3d));
   for (auto& p : planes) grads.push_back(torch::zeros_like(p, at::MemoryFormat::ChannelsLast));
   for (auto& g : grads) data.push_back(g.data_ptr<float>());
-  accumulate_gradients(tables, x.data_ptr<float>(), grad_out.data_ptr<float>(), m, n_out, data, {}, vector_path);
+  accumulate_gradients(tables, in.x.data_ptr<float>(), in.grad_out.data_ptr<float>(), in.m, in.n_out, data, {},
+                       vector_path);
   return grads;
 }
 
@@ -343,11 +354,8 @@ std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_o
 void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
                           std::vector<torch::Tensor> planes, std::vector<torch::Tensor> grads,
                           std::vector<torch::Tensor> touched, bool vector_path) {
-  x = x.contiguous();
-  grad_out = grad_out.contiguous();
-  const auto tables = describe(dense, planes);
-  const int64_t m = x.size(0), n_out = total_columns(tables);
-  TORCH_CHECK(grad_out.size(0) == m && grad_out.size(1) == n_out, "grad_out must be (M, total features)");
+  const BackwardInputs in(x, grad_out, dense, planes);
+  const auto& tables = in.tables;
   TORCH_CHECK(grads.size() == tables.size() && touched.size() == tables.size(), "one buffer per table expected");
   std::vector<torch::Tensor> layout = channels_last(dense, true);
   for (auto& p : channels_last(planes, false)) layout.push_back(p);
@@ -363,7 +371,8 @@ void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<t
     data.push_back(grads[k].data_ptr<float>());
     flags.push_back(touched[k].data_ptr<uint8_t>());
   }
-  accumulate_gradients(tables, x.data_ptr<float>(), grad_out.data_ptr<float>(), m, n_out, data, flags, vector_path);
+  accumulate_gradients(tables, in.x.data_ptr<float>(), in.grad_out.data_ptr<float>(), in.m, in.n_out, data, flags,
+                       vector_path);
 }
 
 
