@@ -1,0 +1,116 @@
+"""How much of a full-image render is cache misses: the same samples with the tables shrunk to fit in cache.
+
+    python -m benchmarks.profile_render_cache [--scene campsite] [--fit-iterations 600] [--fit-dir DIR]
+                                              [--render-samples 48] [--repeats 5] [--threads 1]
+
+Renders one training view from the fitted f_S (cached as in benchmarks.profile_edit) and records every
+call of the fused inference kernel (points, per-ray SH features, each sample's ray). It then replays those
+calls, f_S alone and the dual field (interleaved tables, as render_view runs it), twice: with the fitted
+tables (~52 MB per field), and with the same MLPs on tables shrunk to 4-32^3 grids and 16-64^2 planes
+(~0.2 MB: every look-up hits in cache). The look-ups do the same arithmetic either way, so the time
+difference is what the cache misses of the real tables cost. bf16 MLPs, as the edit stage's view
+updates run them. Timings include whatever else runs on the machine (check `uptime`).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+
+def _record_inference_calls(model, dataset, view) -> list[tuple]:
+    """(x, sh, sh_index) of every field_inference call of one render of `view`."""
+    import torch
+
+    from dualnerf import kernels
+    from dualnerf.rendering import render_view
+
+    calls, original = [], kernels.field_inference
+
+    def record(x, sh, *args, **kwargs):
+        index = kwargs.get("sh_index")
+        calls.append((x.clone(), sh.clone(), None if index is None else index.clone()))
+        return original(x, sh, *args, **kwargs)
+
+    kernels.field_inference = record
+    try:
+        with torch.no_grad():
+            render_view(model, dataset.c2w[view], dataset.intrinsics[view], dataset.width, dataset.height,
+                        float(dataset.near[view]), float(dataset.far[view]))
+    finally:
+        kernels.field_inference = original
+    return calls
+
+
+def _replay_seconds(model, blend, calls, repeats: int) -> float:
+    import torch
+
+    from dualnerf import kernels
+
+    def replay():
+        with torch.no_grad(), kernels.mlp_precision("bf16"), model.render_session():
+            for x, sh, index in calls:
+                model.query(x, None, blend=blend, dir_features=sh, dir_index=index)
+
+    replay()                                                        # warm-up
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        replay()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main(argv: list[str] | None = None) -> None:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.profile_render_cache")
+    parser.add_argument("--scene", default="campsite")
+    parser.add_argument("--fit-iterations", type=int, default=600)
+    parser.add_argument("--fit-dir", default=None)
+    parser.add_argument("--max-size", type=int, default=256)
+    parser.add_argument("--render-samples", type=int, default=48)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args([] if argv is None else argv)
+
+    import torch
+
+    from benchmarks.profile_edit import _fitted_field
+    from dualnerf.dataset import load_dataset
+    from dualnerf.dual_field import make_edit_model
+    from dualnerf.fields import RadianceField
+    from dualnerf.model import load_model
+
+    torch.set_num_threads(args.threads)
+    print(f"cores: {os.cpu_count()}, torch threads: {args.threads}, load {os.getloadavg()[0]:.2f}; "
+          "timings include other load")
+    with tempfile.TemporaryDirectory(prefix="profile-render-cache-") as tmp:
+        data_dir, model_dir = _fitted_field(args, Path(tmp))
+        dataset = load_dataset(data_dir)
+        static = load_model(model_dir)
+    static.config = dataclasses.replace(static.config, render_samples_per_ray=args.render_samples)
+    view = int(dataset.indices("train")[0])
+    calls = _record_inference_calls(static, dataset, view)
+    # Same MLPs (same feature count: 13 tables x 2), tables small enough to stay in cache.
+    small_config = dataclasses.replace(static.config, grid_resolutions=(4, 8, 16, 32), plane_resolutions=(16, 32, 64))
+    small = RadianceField(small_config, generator=torch.Generator().manual_seed(0))
+    small.load_state_dict({k: v for k, v in static.state_dict().items() if "mlp" in k}, strict=False)
+    print(f"{args.scene} {dataset.width}x{dataset.height}: {sum(len(c[0]) for c in calls) / 1e6:.2f}M samples "
+          f"in {len(calls)} kernel calls, replayed {args.repeats}x")
+    print(f"{'model':>10s}  {'fitted tables s':>15s}  {'cache-sized s':>13s}  {'misses share':>12s}")
+    for label, blend in (("f_S", None), ("dual", (0.1, 0.1))):
+        seconds = []
+        for base in (static, small):
+            base.requires_grad_(False)
+            model = base if blend is None else make_edit_model(base, "dual")
+            model.requires_grad_(False)
+            seconds.append(_replay_seconds(model, blend, calls, args.repeats))
+        print(f"{label:>10s}  {seconds[0]:15.3f}  {seconds[1]:13.3f}  {1 - seconds[1] / seconds[0]:12.0%}")
+
+
+if __name__ == "__main__":
+    main()
