@@ -21,12 +21,13 @@ Timings include whatever else runs on the machine (check `uptime`).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import statistics
 import tempfile
 import time
 from pathlib import Path
+
+from benchmarks.profile_edit import add_fitted_field_arguments, load_fitted_field
 
 
 def matmul_flops(threads: int, size: int = 1024, repeats: int = 5) -> float:
@@ -74,34 +75,20 @@ def _evaluated_samples(model, dataset, view, blend, termination_eps) -> int:
 def main(argv: list[str] | None = None) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_render")
-    parser.add_argument("--scene", default="campsite")
-    parser.add_argument("--fit-iterations", type=int, default=600)
-    parser.add_argument("--fit-dir", default=None)
-    parser.add_argument("--max-size", type=int, default=256)
-    parser.add_argument("--render-samples", type=int, default=48)
+    add_fitted_field_arguments(parser, threads=2)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--termination", action="store_true",
                         help="also time renders with early ray termination (ERT, termination_eps=1e-4)")
     args = parser.parse_args([] if argv is None else argv)
 
     import torch
 
-    from benchmarks.profile_edit import _fitted_field
     from dualnerf import kernels
-    from dualnerf.dataset import load_dataset
     from dualnerf.dual_field import make_edit_model
     from dualnerf.flops import field_flops_per_sample
-    from dualnerf.model import load_model
 
-    torch.set_num_threads(args.threads)
-    print(f"cores: {os.cpu_count()}, torch threads: {args.threads}, load {os.getloadavg()[0]:.2f}; "
-          "timings include other load")
     with tempfile.TemporaryDirectory(prefix="bench-render-") as tmp:
-        data_dir, model_dir = _fitted_field(args, Path(tmp))
-        dataset = load_dataset(data_dir)
-        static = load_model(model_dir)
-    static.config = dataclasses.replace(static.config, render_samples_per_ray=args.render_samples)
+        _, dataset, static = load_fitted_field(args, Path(tmp))
     dual = make_edit_model(static, "dual")
     with torch.no_grad():
         g = torch.Generator().manual_seed(0)

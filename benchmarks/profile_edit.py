@@ -94,6 +94,36 @@ def _fitted_field(args, tmp: Path):
     return data, fit / "model"
 
 
+def add_fitted_field_arguments(parser, threads: int) -> None:
+    """The options of the benchmarks that time a fitted f_S (profile_edit, bench_render, profile_render_cache)."""
+    parser.add_argument("--scene", default="campsite")
+    parser.add_argument("--fit-iterations", type=int, default=600)
+    parser.add_argument("--fit-dir", default=None, help="cache folder of the fitted f_S (created if empty)")
+    parser.add_argument("--max-size", type=int, default=256)
+    parser.add_argument("--render-samples", type=int, default=48,
+                        help="render_samples_per_ray of f_S (the ablation workflow's value)")
+    parser.add_argument("--threads", type=int, default=threads)
+
+
+def load_fitted_field(args, tmp: Path):
+    """(dataset folder, dataset, f_S rendering --render-samples per ray) on --threads torch threads, after
+    printing the machine's line."""
+    import dataclasses
+
+    import torch
+
+    from dualnerf.dataset import load_dataset
+    from dualnerf.model import load_model
+
+    torch.set_num_threads(args.threads)
+    print(f"cores: {os.cpu_count()}, torch threads: {args.threads}, load {os.getloadavg()[0]:.2f}; "
+          "timings include other load")
+    data_dir, model_dir = _fitted_field(args, tmp)
+    static = load_model(model_dir)
+    static.config = dataclasses.replace(static.config, render_samples_per_ray=args.render_samples)
+    return data_dir, load_dataset(data_dir), static
+
+
 def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Path) -> dict:
     from dualnerf import patches, rendering, training
     from dualnerf.idu import IterativeDatasetUpdate
@@ -222,32 +252,13 @@ def _print(result) -> None:
 def main(argv: list[str] | None = None) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     parser = argparse.ArgumentParser(prog="python -m benchmarks.profile_edit")
-    parser.add_argument("--scene", default="campsite")
+    add_fitted_field_arguments(parser, threads=2)
     parser.add_argument("--iterations", type=int, default=100, help="editing iterations per variant")
-    parser.add_argument("--fit-iterations", type=int, default=600)
-    parser.add_argument("--fit-dir", default=None, help="cache folder of the fitted f_S (created if empty)")
-    parser.add_argument("--max-size", type=int, default=256)
-    parser.add_argument("--render-samples", type=int, default=48,
-                        help="render_samples_per_ray of f_S (the ablation workflow's value)")
-    parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args([] if argv is None else argv)
 
-    import dataclasses
-
-    import torch
-
-    from dualnerf.dataset import load_dataset
-    from dualnerf.model import load_model
-
-    torch.set_num_threads(args.threads)
-    print(f"cores: {os.cpu_count()}, torch threads: {args.threads}, load {os.getloadavg()[0]:.2f}; "
-          "timings include other load")
     with tempfile.TemporaryDirectory(prefix="profile-edit-") as tmp:
         tmp = Path(tmp)
-        data_dir, model_dir = _fitted_field(args, tmp)
-        dataset = load_dataset(data_dir)
-        static = load_model(model_dir)
-        static.config = dataclasses.replace(static.config, render_samples_per_ray=args.render_samples)
+        data_dir, dataset, static = load_fitted_field(args, tmp)
         print(f"{args.scene} {dataset.width}x{dataset.height}, {len(dataset.indices('train'))} training views, "
               f"occupancy {static.occupancy.fraction():.2f}, samples/ray {static.config.samples_per_ray} "
               f"(render {static.config.render_samples_per_ray})")

@@ -21,6 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from benchmarks.profile_edit import add_fitted_field_arguments, load_fitted_field
+
 
 def _record_inference_calls(model, dataset, view) -> list[tuple]:
     """(x, sh, sh_index) of every field_inference call of one render of `view`."""
@@ -68,31 +70,17 @@ def _replay_seconds(model, blend, calls, repeats: int) -> float:
 def main(argv: list[str] | None = None) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     parser = argparse.ArgumentParser(prog="python -m benchmarks.profile_render_cache")
-    parser.add_argument("--scene", default="campsite")
-    parser.add_argument("--fit-iterations", type=int, default=600)
-    parser.add_argument("--fit-dir", default=None)
-    parser.add_argument("--max-size", type=int, default=256)
-    parser.add_argument("--render-samples", type=int, default=48)
+    add_fitted_field_arguments(parser, threads=1)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args([] if argv is None else argv)
 
     import torch
 
-    from benchmarks.profile_edit import _fitted_field
-    from dualnerf.dataset import load_dataset
     from dualnerf.dual_field import make_edit_model
     from dualnerf.fields import RadianceField
-    from dualnerf.model import load_model
 
-    torch.set_num_threads(args.threads)
-    print(f"cores: {os.cpu_count()}, torch threads: {args.threads}, load {os.getloadavg()[0]:.2f}; "
-          "timings include other load")
     with tempfile.TemporaryDirectory(prefix="profile-render-cache-") as tmp:
-        data_dir, model_dir = _fitted_field(args, Path(tmp))
-        dataset = load_dataset(data_dir)
-        static = load_model(model_dir)
-    static.config = dataclasses.replace(static.config, render_samples_per_ray=args.render_samples)
+        _, dataset, static = load_fitted_field(args, Path(tmp))
     view = int(dataset.indices("train")[0])
     calls = _record_inference_calls(static, dataset, view)
     # Same MLPs (same feature count: 13 tables x 2), tables small enough to stay in cache.
@@ -113,4 +101,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    main(sys.argv[1:])
