@@ -86,7 +86,10 @@ def main(argv: list[str] | None = None) -> None:
     # Same MLPs (same feature count: 13 tables x 2), tables small enough to stay in cache.
     small_config = dataclasses.replace(static.config, grid_resolutions=(4, 8, 16, 32), plane_resolutions=(16, 32, 64))
     small = RadianceField(small_config, generator=torch.Generator().manual_seed(0))
-    small.load_state_dict({k: v for k, v in static.state_dict().items() if "mlp" in k}, strict=False)
+    mlps = {k: v for k, v in static.state_dict().items() if "mlp" in k}
+    loaded = small.load_state_dict(mlps, strict=False)
+    if not mlps or loaded.unexpected_keys or any(k in loaded.missing_keys for k in mlps):
+        raise RuntimeError(f"the fitted MLPs did not load into the cache-sized field: {loaded}")
     print(f"{args.scene} {dataset.width}x{dataset.height}: {sum(len(c[0]) for c in calls) / 1e6:.2f}M samples "
           f"in {len(calls)} kernel calls, replayed {args.repeats}x")
     print(f"{'model':>10s}  {'fitted tables s':>15s}  {'cache-sized s':>13s}  {'misses share':>12s}")

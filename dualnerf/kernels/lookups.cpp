@@ -98,8 +98,8 @@ __attribute__((target("avx512f"))) inline AxisV axis_coord_v(__m512 c, int64_t s
 }
 
 // A corner's two features (adjacent floats) for 16 points, gathered as 8-byte pairs: two 8-lane gathers
-// load what two 16-lane float gathers did with half the loads (the gathers bound the look-ups: a
-// 16-lane gather costs one load per lane), then split into feature 0 and feature 1 of the 16 lanes.
+// load what two 16-lane float gathers did with half the loads (a gather costs one load per lane), then
+// split into feature 0 and feature 1 of the 16 lanes.
 // The values are the same floats, so everything computed from them is the same bits.
 __attribute__((target("avx512f"))) inline void gather_features16(__m512i offset, const float* table, __m512& first,
                                                                  __m512& second) {
