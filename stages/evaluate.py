@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.stage import Resources, Stage, StageContext
+from stages.numerics import TorchNumerics, use_step_threads
 
 PATH_FPS = 24.0
 FALLBACK_VIEWS = 4          # fixed views taken from the training frames when none are held out
@@ -56,9 +57,10 @@ class EvaluateParams:
     chunk: int = 8192                   # non-semantic: rays per rendering batch
 
 
-class EvaluateStage(Stage):
+class EvaluateStage(TorchNumerics, Stage):
     name = "evaluate"
-    version = "4"                       # 3: LPIPS metrics; path.mp4 is H.264 (was mp4v); 4: packed renders
+    version = "5"                       # 3: LPIPS metrics; path.mp4 is H.264 (was mp4v); 4: packed renders;
+                                        # 5: thread-count independent renders, metrics and video
     Params = EvaluateParams
     # "original": the evaluate result of the unedited scene (same dataset and fit). Edited rows reuse its
     # f_S renders instead of rendering the same camera path again (the workflow passes it).
@@ -99,7 +101,7 @@ class EvaluateStage(Stage):
         if p.device.startswith("cuda") and not torch.cuda.is_available():
             raise EvaluateError(f"evaluate: device '{p.device}' was requested but torch sees no CUDA device; "
                                 f"use device='cpu'.")
-        torch.set_num_threads(max(1, p.num_threads or ctx.threads))
+        use_step_threads(ctx, p.num_threads)
         data_dir = Path(ctx.inputs["dataset"])
         dataset = load_dataset(data_dir)
         edit_dir = ctx.inputs.get("edit")

@@ -4,8 +4,10 @@ Input: upstream "dataset" (a preprocess result folder, `dualnerf.dataset`).
 Outputs in ctx.out_dir:
     model/                 the static field (dualnerf.model.save_model)
     heldout/<name>.png     renders of the held-out views
-    metrics.json           PSNR and SSIM (skimage) per held-out view and their means, training time
-    curve.json, curve.png  loss and held-out PSNR against training time and step
+    metrics.json           PSNR and SSIM (skimage) per held-out view and their means
+    curve.json, curve.png  loss and held-out PSNR against the training step
+The training time goes to the manifest (record: train_time_s, and per curve point): published files hold
+no wall-clock times, so one key's result is the same bytes wherever it was computed.
 Checkpoints (trainer state: model, optimiser, occupancy grid, generator; plus step, curve and elapsed
 training time) are written every `checkpoint_every` iterations; a killed run resumes from the newest one
 and ends with the same parameters as an uninterrupted run (on CPU; CUDA scatter-adds are not bitwise
@@ -20,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.stage import Resources, Stage, StageContext
+from stages.numerics import TorchNumerics, use_step_threads
 
 
 class FitInputError(ValueError):
@@ -87,12 +90,14 @@ def field_config(p: FitParams):
                        proposal_samples=p.proposal_samples, background=p.background)
 
 
-class FitStage(Stage):
+class FitStage(TorchNumerics, Stage):
     name = "fit"
     # 2: proposal density scale (a different sampler, so different fields); 3: feature planes and the
     # render sample count; 4: Adam skips feature-table entries without gradient (dualnerf.optim); 5: renders
-    # composite in the packed kernel path (dualnerf.rendering._render_packed: float32 rounding differs)
-    version = "5"
+    # composite in the packed kernel path (dualnerf.rendering._render_packed: float32 rounding differs);
+    # 6: the MLPs train on the kernels (thread-count independent sums), renders' exp and sums as the
+    # portable path's, torch on one thread
+    version = "6"
     Params = FitParams
     upstream = ("dataset",)
     resources = Resources(cpus=2, gpus=0, memory_gb=3)
@@ -111,7 +116,7 @@ class FitStage(Stage):
             raise FitInputError("fit: device='cuda' but no CUDA device is available; set fit.device='cpu'")
         if p.iterations < 1 or p.checkpoint_every < 1 or p.eval_every < 1:
             raise FitInputError("fit: iterations, checkpoint_every and eval_every must be >= 1")
-        torch.set_num_threads(max(1, p.num_threads or ctx.threads))
+        use_step_threads(ctx, p.num_threads)
         dataset = load_dataset(Path(ctx.inputs["dataset"]))
         if len(dataset.indices("train")) == 0:
             raise FitInputError(f"fit: dataset {ctx.inputs['dataset']} has no training views (all held out); "
@@ -150,6 +155,7 @@ class _FitRun:
         self.eval_split = "heldout" if len(heldout) else "train"
         self.eval_views = heldout if len(heldout) else dataset.indices("train")[:4]
         self.curve: list[dict] = []
+        self.curve_times: list[float] = []         # training seconds at each curve point (manifest only)
         self.train_time = 0.0
         self.running_loss: float | None = None     # smoothed loss for the curve; checkpointed too
         self.start_step = 0
@@ -162,7 +168,7 @@ class _FitRun:
             torch.save(self.trainer.state_dict(), Path(folder) / "trainer.pt")
             (Path(folder) / "progress.json").write_text(json.dumps(
                 {"step": step, "train_time_s": self.train_time, "running_loss": self.running_loss,
-                 "curve": self.curve}))
+                 "curve": self.curve, "curve_times": self.curve_times}))
 
     def resume(self) -> None:
         import torch
@@ -176,6 +182,7 @@ class _FitRun:
         progress = json.loads((Path(folder) / "progress.json").read_text())
         self.start_step, self.train_time, self.curve = step, progress["train_time_s"], progress["curve"]
         self.running_loss = progress["running_loss"]
+        self.curve_times = progress.get("curve_times", [])
         self.ctx.log.info("resumed from checkpoint at step %d", step)
 
     # ---- evaluation ----------------------------------------------------------------------------
@@ -207,9 +214,9 @@ class _FitRun:
                 if done % p.eval_every == 0 or done == p.iterations:
                     views = self.eval_views[: max(1, p.curve_views)]
                     psnr = sum(self.psnr(int(i)) for i in views) / len(views)
-                    self.curve.append({"step": done, "train_time_s": round(self.train_time, 3),
-                                       "loss": self.running_loss, "heldout_psnr": psnr,
+                    self.curve.append({"step": done, "loss": self.running_loss, "heldout_psnr": psnr,
                                        "occupancy": stats["occupancy"], "samples": stats["samples"]})
+                    self.curve_times.append(round(self.train_time, 3))
                     self.ctx.log.info("step %d: held-out PSNR %.2f dB after %.1f s of training", done, psnr,
                                       self.train_time)
                 if done % p.checkpoint_every == 0 and done < p.iterations:
@@ -240,7 +247,6 @@ class _FitRun:
             "psnr_mean": float(np.mean([v["psnr"] for v in per_view.values()])),
             "ssim_mean": float(np.mean([v["ssim"] for v in per_view.values()])),
             "views": per_view,
-            "train_time_s": self.train_time,
             "iterations": self.p.iterations,
             "occupancy_fraction": self.model.occupancy.fraction(),
             "lpips_loss": lpips_setting(self.p),
@@ -249,6 +255,7 @@ class _FitRun:
         (out / "curve.json").write_text(json.dumps(self.curve, indent=1))
         plot_curve(self.curve, out / "curve.png")
         save_model(out / "model", self.model, extra={"stage": "fit", "psnr_mean": metrics["psnr_mean"]})
+        self.ctx.record(train_time_s=round(self.train_time, 3), curve_train_time_s=self.curve_times)
         self.ctx.log.info("fit done: %s PSNR %.2f dB, SSIM %.3f, %.1f s training", self.eval_split,
                           metrics["psnr_mean"], metrics["ssim_mean"], self.train_time)
 
@@ -267,12 +274,12 @@ def plot_curve(curve: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4))
-    times = [c["train_time_s"] for c in curve]
-    ax.plot(times, [c["heldout_psnr"] for c in curve], "o-", color="tab:blue")
-    ax.set_xlabel("training time (s)")
+    steps = [c["step"] for c in curve]
+    ax.plot(steps, [c["heldout_psnr"] for c in curve], "o-", color="tab:blue")
+    ax.set_xlabel("training step")
     ax.set_ylabel("held-out PSNR (dB)", color="tab:blue")
     twin = ax.twinx()
-    twin.plot(times, [c["loss"] for c in curve], "s--", color="tab:red")
+    twin.plot(steps, [c["loss"] for c in curve], "s--", color="tab:red")
     twin.set_ylabel("training loss", color="tab:red")
     twin.set_yscale("log")
     ax.set_title("static field fit")

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.stage import Resources, Stage, StageContext
+from stages.numerics import NumpyNumerics
 
 KINDS = ("original", "gt_edit", "gt_mask")
 
@@ -37,7 +38,7 @@ class GroundTruthViewsParams:
     scene_supersample: int = 0     # the procedural scene's supersample (0: its default), to re-render it exactly
 
 
-class GroundTruthViewsStage(Stage):
+class GroundTruthViewsStage(NumpyNumerics, Stage):
     name = "gtviews"
     version = "1"
     Params = GroundTruthViewsParams

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.stage import Resources, Stage, StageContext
+from stages.numerics import TorchNumerics, semantic_values, use_step_threads
 
 CHECKPOINT_EVERY = 16          # edited images between in-stage checkpoints
 
@@ -50,7 +51,7 @@ class PerFrameParams:
     num_threads: int = 0           # non-semantic; 0: the threads the engine grants
 
 
-class PerFrameStage(Stage):
+class PerFrameStage(TorchNumerics, Stage):
     name = "perframe"
     version = "1"
     Params = PerFrameParams
@@ -70,7 +71,7 @@ class PerFrameStage(Stage):
             raise PerFrameError(f"perframe: unknown editor '{p.editor}'; choose one of {', '.join(EDITOR_KINDS)}.")
         if "original" not in ctx.inputs or "dataset" not in ctx.inputs:
             raise PerFrameError("perframe needs the inputs 'dataset' and 'original' (the unedited evaluation).")
-        torch.set_num_threads(max(1, p.num_threads or ctx.threads))
+        use_step_threads(ctx, p.num_threads)
         data_dir, original_dir = Path(ctx.inputs["dataset"]), Path(ctx.inputs["original"])
         dataset = load_dataset(data_dir)
         instruction = p.instruction or _scene_instruction(data_dir, p.edit_id)
@@ -106,7 +107,7 @@ class PerFrameStage(Stage):
         identity = editor.identity
         (out / "edit.json").write_text(json.dumps({
             "method": "per-frame", "instruction": instruction, "edit_id": p.edit_id, "editor": identity,
-            "editor_is_simulator": bool(identity.get("is_simulator")), "params": asdict(p),
+            "editor_is_simulator": bool(identity.get("is_simulator")), "params": semantic_values(p, self.nonsemantic_params),
             "images": details}, indent=1))
         ctx.record(editor=identity, editor_is_simulator=bool(identity.get("is_simulator")),
                    seeds={"seed": p.seed, "editor_seed": "(seed, k) for image k: path frames, then views"},

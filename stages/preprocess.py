@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.stage import Resources, Stage, StageContext
+from stages.numerics import NumpyNumerics
 
 
 class PreprocessInputError(ValueError):
@@ -31,7 +32,7 @@ class PreprocessParams:
     min_registered_fraction: float = 0.5    # fail when SfM registers fewer images than this
 
 
-class PreprocessStage(Stage):
+class PreprocessStage(NumpyNumerics, Stage):
     name = "preprocess"
     version = "2"           # 2: SfM with more SIFT features, 2 px filter, pinhole unless distortion pays
     Params = PreprocessParams
@@ -64,6 +65,6 @@ class PreprocessStage(Stage):
             ctx.log.warning(warning)
         ctx.log.info("registered %d/%d images, %s points, mean reprojection error %s px",
                      report["registered"], report["total"], report["points"], report["mean_reprojection_error"])
-        ctx.record(seed=p.seed, method=report["method"], registered=report["registered"], total=report["total"],
+        ctx.record(source=str(source), seed=p.seed, method=report["method"], registered=report["registered"], total=report["total"],
                    points=report["points"], mean_reprojection_error=report["mean_reprojection_error"],
                    unregistered=report["unregistered"])

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from pipeline.stage import Resources, Stage, StageContext
+from stages.numerics import NumpyNumerics
 
 
 @dataclass(frozen=True)
@@ -21,7 +22,7 @@ class SceneParams:
     workers: int = 0        # non-semantic: render processes (0: the threads the engine grants)
 
 
-class SceneStage(Stage):
+class SceneStage(NumpyNumerics, Stage):
     name = "scene"
     # 2: campsite gained the geometry edit 'canoe' (gt/edits/canoe) and scene.toml records each edit's
     # kind; the views and the earlier edits render byte-identically.

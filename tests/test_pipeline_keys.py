@@ -37,7 +37,23 @@ class DeviceStage(Stage):
         pass
 
 
-REG = dict(REGISTRY, device="tests.test_pipeline_keys:DeviceStage")
+class RuntimeStage(Stage):
+    """Its result depends on a fact of the computing process (here an environment variable standing in for a
+    CPU's code path): the fact enters the key, and a worker that differs must refuse to compute it."""
+
+    name = "runtime"
+    version = "1"
+    Params = DeviceParams
+
+    @classmethod
+    def runtime_environment(cls, params):
+        return {"code_path": os.environ.get("TEST_CODE_PATH", "vector")}
+
+    def run(self, ctx):
+        (ctx.out_dir / "out.txt").write_text(os.environ.get("TEST_CODE_PATH", "vector"))
+
+
+REG = dict(REGISTRY, device="tests.test_pipeline_keys:DeviceStage", runtime="tests.test_pipeline_keys:RuntimeStage")
 
 
 @pytest.fixture
@@ -116,6 +132,37 @@ def test_environment_fingerprint_packages_and_device(store):
                                "surely-not-installed-pkg": "not-installed"}
     assert env["device"] == "cuda"
     assert key(store, Step("device", {"device": "cpu"})) != key(store, step)
+
+
+def test_runtime_environment_enters_the_key(store, monkeypatch):
+    step = Step("runtime", {})
+    monkeypatch.setenv("TEST_CODE_PATH", "vector")
+    keyed = compute_keys([step], registry=REG, store=store)[step]
+    assert keyed.key_inputs["environment"]["runtime"] == {"code_path": "vector"}
+    monkeypatch.setenv("TEST_CODE_PATH", "portable")
+    assert key(store, step) != keyed.key
+
+
+def test_a_worker_in_another_environment_refuses_to_compute(store, tmp_path, monkeypatch):
+    from pipeline.dag import params_dict
+    from pipeline.engine import Job, execute_job
+
+    step = Step("runtime", {})
+    monkeypatch.setenv("TEST_CODE_PATH", "vector")            # the driver plans on a "vector" machine
+    keyed = compute_keys([step], registry=REG, store=store)[step]
+    job = Job(key=keyed.key, stage_ref=REG["runtime"], params=params_dict(keyed.params), inputs={},
+              key_inputs=keyed.key_inputs, label="runtime", log_path=str(tmp_path / "log.txt"),
+              cache_root=str(store.root), quiet=True)
+    monkeypatch.setenv("TEST_CODE_PATH", "portable")          # ... the worker takes another path
+    outcome = execute_job(job)
+    assert outcome.status == "failed" and outcome.user_error
+    assert "runtime.code_path: key computed for 'vector', this worker has 'portable'" in outcome.error
+    assert store.lookup(keyed.key) is None and not (store.tmp.exists() and any(store.tmp.iterdir()))
+    monkeypatch.setenv("TEST_CODE_PATH", "vector")            # a matching worker computes and publishes it,
+    outcome = execute_job(job)                                # recording its environment in the manifest
+    assert outcome.status == "done"
+    manifest = store.manifest(keyed.key)
+    assert manifest["runtime"] == {"code_path": "vector"} and manifest["stage_version"] == "1"
 
 
 def test_hash_memo_skips_rehashing_unchanged_files_but_not_fresh_ones(store, tmp_path, monkeypatch):

@@ -70,7 +70,7 @@ def preprocess(source: Path, out: Path, config: PreprocessConfig, scratch: Path 
             recon = run_sfm(source, Path(scratch), config)
     recon = _sorted_by_name(recon)
     dataset = build_dataset(recon, config.max_size, config.holdout_every,
-                            source={"method": method, "path": str(source.resolve()), "config": asdict(config)})
+                            source={"method": method, "name": source.resolve().name, "config": asdict(config)})
     out.mkdir(parents=True, exist_ok=True)
     save_dataset(dataset, out)
     carried = carry_scene_files(source, out, dataset.names, (dataset.width, dataset.height))

@@ -66,10 +66,7 @@ def _build():
     try:
         from torch.utils.cpp_extension import load
 
-        # The build is named by the sources' and headers' content: torch rebuilds on changed sources only,
-        # and a changed header must not reuse an extension compiled from the old one.
-        digest = hashlib.sha256(b"".join(p.read_bytes() for p in _SOURCES + _HEADERS)).hexdigest()[:12]
-        return load(f"dualnerf_field_kernels_{digest}", [str(p) for p in _SOURCES],
+        return load(build_name(), [str(p) for p in _SOURCES],
                     extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"], extra_ldflags=["-fopenmp"], verbose=False)
     # No compiler, no ninja, a failed build: the reference path still works.
     except (OSError, RuntimeError, ImportError, subprocess.CalledProcessError) as error:
@@ -77,6 +74,13 @@ def _build():
                     "reference path, which is ~2x slower. Install a C++ compiler and ninja, or set "
                     "DUALNERF_KERNELS=0 to silence this.", str(error).splitlines()[0] if str(error) else error)
         return None
+
+
+def build_name() -> str:
+    """The extension's name: named by the sources' and headers' content, so torch rebuilds on changed
+    sources only, and a changed header never reuses an extension compiled from the old one."""
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in _SOURCES + _HEADERS)).hexdigest()[:12]
+    return f"dualnerf_field_kernels_{digest}"
 
 
 def kernel_name() -> str:
@@ -208,16 +212,7 @@ def fused_grid_features(x: torch.Tensor, dense_grids, planes) -> torch.Tensor:
 
 def _layer_tensors(layers) -> list[torch.Tensor]:
     """(W^T zero-padded to (in, 16k), bias zero-padded to 16k) per nn.Linear: the inference kernel's layout."""
-    out = []
-    for layer in layers:
-        n_out, n_in = layer.weight.shape
-        padded = -(-n_out // 16) * 16
-        weight_t = layer.weight.new_zeros(n_in, padded)
-        weight_t[:, :n_out] = layer.weight.detach().t()
-        bias = layer.bias.new_zeros(padded)
-        bias[:n_out] = layer.bias.detach()
-        out += [weight_t, bias]
-    return out
+    return _forward_layout(_parameters(layers))
 
 
 def interleave_pair(first_tables, second_tables) -> list[torch.Tensor] | None:
@@ -256,6 +251,84 @@ def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=No
         x, sh, list(dense), list(planes), _layer_tensors(layers), list(second_dense), list(second_planes),
         second_layers, float(blend[0]), float(blend[1]), [] if second is None or interleaved is None else interleaved,
         sh_index, vector_path(), current_mlp_precision() == "bf16", _amx_path()))
+
+
+def _forward_layout(params) -> list[torch.Tensor]:
+    """(W^T zero-padded to (in, 16k), bias zero-padded to 16k) per layer from its (weight, bias) tensors."""
+    out = []
+    for weight, bias in zip(params[::2], params[1::2]):
+        n_out, n_in = weight.shape
+        padded = -(-n_out // 16) * 16
+        weight_t = weight.new_zeros(n_in, padded)
+        weight_t[:, :n_out] = weight.detach().t()
+        bias_padded = bias.new_zeros(padded)
+        bias_padded[:n_out] = bias.detach()
+        out += [weight_t, bias_padded]
+    return out
+
+
+def _backward_layout(params) -> list[torch.Tensor]:
+    """Each layer's weight (out, in) with its columns zero-padded to a multiple of 16 (dx = dy W)."""
+    out = []
+    for weight in params[::2]:
+        n_out, n_in = weight.shape
+        padded = weight.new_zeros(n_out, -(-n_in // 16) * 16)
+        padded[:, :n_in] = weight.detach()
+        out.append(padded)
+    return out
+
+
+class _TrainHeads(torch.autograd.Function):
+    """A field's MLPs with autograd on the training kernels (mlp_train.cpp): the same bits on any thread
+    count and on the AVX-512 and portable paths."""
+
+    @staticmethod
+    def forward(ctx, features, sh, sh_index, *params):
+        h_sigma, h_color, hidden_density, color_in, hidden_color = grid_kernel().mlp_train_forward(
+            features, sh, sh_index, _forward_layout(params), vector_path())
+        ctx.save_for_backward(features, hidden_density, color_in, hidden_color, *params)
+        ctx.n_sh = sh.shape[1]
+        return h_sigma, h_color
+
+    @staticmethod
+    def backward(ctx, grad_sigma, grad_color):
+        features, hidden_density, color_in, hidden_color, *params = ctx.saved_tensors
+        if grad_sigma is None:
+            grad_sigma = features.new_zeros(features.shape[0])
+        if grad_color is None:
+            grad_color = features.new_zeros(features.shape[0], 3)
+        out = grid_kernel().mlp_train_backward(grad_sigma, grad_color, features, hidden_density, color_in,
+                                               hidden_color, _forward_layout(params), _backward_layout(params),
+                                               ctx.n_sh, vector_path())
+        return (out[0] if ctx.needs_input_grad[0] else None, None, None, *out[1:])
+
+
+def train_heads(features: torch.Tensor, sh: torch.Tensor, layers,
+                sh_index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(h_sigma, h_color) of a field's 4 MLP layers (density hidden, density out, colour hidden, colour out)
+    with autograd to the features and the layers' parameters: the training counterpart of mlp_inference.
+    Row i's direction features are sh[i], or sh[sh_index[i]] with an index. The weight gradients are sums
+    over samples in a fixed grouping (mlp_train.cpp), so a training step's bits do not depend on the
+    thread count; they agree with torch's nn.Linear to float32 rounding."""
+    params = _parameters(layers)
+    return _TrainHeads.apply(features, sh.detach(), sh_index, *params)
+
+
+def can_train(features: torch.Tensor, sh: torch.Tensor) -> bool:
+    """train_heads takes these inputs: the kernel is built, float32 CPU features and sh."""
+    return runs_on(features) and runs_on(sh)
+
+
+def set_threads(n: int) -> None:
+    """The kernels' thread count (their results do not depend on it); no-op without the kernel."""
+    module = grid_kernel()
+    if module is not None:
+        module.set_threads(max(1, int(n)))
+
+
+def kernel_threads() -> int:
+    module = grid_kernel()
+    return module.get_threads() if module is not None else 0
 
 
 def mlp_inference(features: torch.Tensor, sh: torch.Tensor, layers) -> tuple[torch.Tensor, torch.Tensor]:

@@ -42,7 +42,7 @@ void adam_step(torch::Tensor param, torch::Tensor grad, torch::Tensor exp_avg, t
   const float* g = grad.data_ptr<float>();
   float* m = exp_avg.data_ptr<float>();
   float* v = exp_avg_sq.data_ptr<float>();
-  at::parallel_for(0, param.numel(), 1 << 16, [&](int64_t begin, int64_t end) {
+  parallel_for(0, param.numel(), 1 << 16, [&](int64_t begin, int64_t end) {
     for (int64_t i = begin; i < end; ++i)
       if (!skip_zero || g[i] != 0.0f) update(p[i], g[i], m[i], v[i]);
   });
@@ -90,7 +90,7 @@ void adam_step_touched(torch::Tensor param, torch::Tensor grad, torch::Tensor to
   float* v = exp_avg_sq.data_ptr<float>();
   uint8_t* flags = touched.data_ptr<uint8_t>();
   const bool vec = avx512_available();
-  at::parallel_for(0, touched.numel(), 1 << 12, [&](int64_t chunk_begin, int64_t chunk_end) {
+  parallel_for(0, touched.numel(), 1 << 12, [&](int64_t chunk_begin, int64_t chunk_end) {
     for (int64_t c = chunk_begin; c < chunk_end; ++c) {
       if (!flags[c]) continue;
       const int64_t begin = c * kTouchChunk, end = std::min(n, begin + kTouchChunk);

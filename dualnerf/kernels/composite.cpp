@@ -8,8 +8,8 @@ using namespace dualnerf;
 // code, so the same bits), their flat index r * S + s in increasing order, their ray, and each ray's first
 // entry (R + 1 offsets). composite_rays: the colour and opacity of each ray from its evaluated samples,
 // the formulas of rendering.composite with decode_density / decode_color, summed per ray in sample order;
-// torch's vectorised exp and sums round differently, so the two agree to float32 rounding
-// (tests/test_render_kernels.py).
+// torch's exp and sums round differently, so the two agree to float32 rounding (tests/test_render_kernels.py);
+// the AVX-512 and portable paths give the same bits.
 std::vector<torch::Tensor> occupied_samples(torch::Tensor origins, torch::Tensor dirs, torch::Tensor t,
                                             torch::Tensor mask) {
   for (const auto* x : {&origins, &dirs, &t})
@@ -38,7 +38,7 @@ std::vector<torch::Tensor> occupied_samples(torch::Tensor origins, torch::Tensor
   const float *op = origins.data_ptr<float>(), *dp = dirs.data_ptr<float>(), *tp = t.data_ptr<float>();
   float* xp = x.data_ptr<float>();
   int64_t *fp = flat.data_ptr<int64_t>(), *rp = ray.data_ptr<int64_t>();
-  at::parallel_for(0, n_rays, 256, [&](int64_t begin, int64_t end) {
+  parallel_for(0, n_rays, 256, [&](int64_t begin, int64_t end) {
     for (int64_t r = begin; r < end; ++r) {
       int64_t j = st[r];
       for (int64_t s = 0; s < S; ++s) {
@@ -72,14 +72,14 @@ void composite_ray_scalar(const RayComposite& c, int64_t r) {
   const int64_t stop = c.st[r + 1], S = c.S;
   for (int64_t s = 0; s < S; ++s) {
     const bool evaluated = j < stop && c.fp[j] == r * S + s;
-    const float sigma = evaluated ? std::exp(std::min(c.hs[j], c.clamp)) : 0.0f;
+    const float sigma = evaluated ? exp_scalar(std::min(c.hs[j], c.clamp)) : 0.0f;
     const float tau = sigma * c.delta[r * S + s];
-    const float alpha = 1.0f - std::exp(-tau);
+    const float alpha = 1.0f - exp_scalar(-tau);
     cumulative += static_cast<double>(tau);
-    const float w = std::exp(-(static_cast<float>(cumulative) - tau)) * alpha;
+    const float w = exp_scalar(tau - static_cast<float>(cumulative)) * alpha;
     weight_sum += w;
     if (evaluated) {
-      for (int a = 0; a < 3; ++a) rgb[a] += w * (1.0f / (1.0f + std::exp(-c.hc[3 * j + a])));
+      for (int a = 0; a < 3; ++a) rgb[a] += w * (1.0f / (1.0f + exp_scalar(-c.hc[3 * j + a])));
       ++j;
     }
   }
@@ -88,7 +88,8 @@ void composite_ray_scalar(const RayComposite& c, int64_t r) {
 }
 
 #ifdef DUALNERF_HAVE_AVX512
-// composite_ray_scalar's formulas 16 samples at a time (the cumulative sum stays sequential, in double).
+// composite_ray_scalar's operations 16 samples at a time (exp16 is exp_scalar's vector form; the
+// cumulative sum and the opacity stay sequential sums in sample order): the same bits.
 // buf: scratch of 4 x S (rounded up to 16) + 3 x S floats.
 __attribute__((target("avx512f"))) void composite_ray_avx512(const RayComposite& c, int64_t r, float* buf) {
   const int64_t S = c.S, S_pad = (S + kLanes - 1) / kLanes * kLanes, first = c.st[r], stop = c.st[r + 1];
@@ -114,14 +115,13 @@ __attribute__((target("avx512f"))) void composite_ray_avx512(const RayComposite&
     cumulative += static_cast<double>(tau[s]);
     w[s] = tau[s] - static_cast<float>(cumulative);          // -(cumsum - tau), exponentiated below
   }
-  __m512 weight_sum = _mm512_setzero_ps();
   for (int64_t s = 0; s < S_pad; s += kLanes) {
     const int64_t left = S - s;
     const __mmask16 lanes = first_lanes(left);
-    const __m512 weight = _mm512_maskz_mul_ps(lanes, exp16(_mm512_loadu_ps(w + s)), _mm512_loadu_ps(alpha + s));
-    _mm512_storeu_ps(w + s, weight);
-    weight_sum = _mm512_add_ps(weight_sum, weight);
+    _mm512_storeu_ps(w + s, _mm512_maskz_mul_ps(lanes, exp16(_mm512_loadu_ps(w + s)), _mm512_loadu_ps(alpha + s)));
   }
+  float opacity = 0.0f;
+  for (int64_t s = 0; s < S; ++s) opacity += w[s];
   const int64_t n_color = 3 * (stop - first);
   for (int64_t k = 0; k < n_color; k += kLanes) {
     const int64_t left = n_color - k;
@@ -135,7 +135,6 @@ __attribute__((target("avx512f"))) void composite_ray_avx512(const RayComposite&
     const float weight = w[c.fp[j] - r * S];
     for (int a = 0; a < 3; ++a) out[a] += weight * rgb[3 * (j - first) + a];
   }
-  const float opacity = _mm512_reduce_add_ps(weight_sum);
   c.opacity[r] = opacity;
   for (int a = 0; a < 3; ++a) c.color[3 * r + a] = out[a] + (1.0f - opacity) * c.bg[3 * r + a];
 }
@@ -165,7 +164,7 @@ std::vector<torch::Tensor> composite_rays(torch::Tensor h_sigma, torch::Tensor h
                        background.data_ptr<float>(), flat.data_ptr<int64_t>(), starts.data_ptr<int64_t>(), S,
                        static_cast<float>(max_h_sigma), color.data_ptr<float>(), opacity.data_ptr<float>()};
   const bool vec = vector_path && avx512_available() && S <= 64 * kLanes;
-  at::parallel_for(0, n_rays, 256, [&](int64_t begin, int64_t end) {
+  parallel_for(0, n_rays, 256, [&](int64_t begin, int64_t end) {
     std::vector<float> buf(vec ? 7 * ((S + kLanes - 1) / kLanes * kLanes) : 0);
     for (int64_t r = begin; r < end; ++r) {
 #ifdef DUALNERF_HAVE_AVX512

@@ -1,4 +1,4 @@
-#include "kernels.h"
+#include "mlp.h"
 
 using namespace dualnerf;
 
@@ -17,82 +17,6 @@ using namespace dualnerf;
 namespace {
 
 constexpr int64_t kInferBlock = 128;
-
-struct Layer {
-  const float* wt;   // (in, out_pad) row-major: W transposed, zero-padded columns
-  const float* b;    // (out_pad), zero-padded
-  int in, out, out_pad;
-};
-
-// Rows [0, rows) of out = relu?(in @ wt + b), portable code.
-void layer_rows_portable(const Layer& l, const float* in, int64_t ld_in, int64_t rows, float* out, int64_t ld_out,
-                         bool relu) {
-  for (int64_t r = 0; r < rows; ++r) {
-    const float* x = in + r * ld_in;
-    float* y = out + r * ld_out;
-    for (int j = 0; j < l.out; ++j) {
-      float acc = l.b[j];
-      for (int k = 0; k < l.in; ++k) acc = std::fma(x[k], l.wt[k * l.out_pad + j], acc);
-      y[j] = relu ? (acc > 0.0f ? acc : 0.0f) : acc;
-    }
-  }
-}
-
-#ifdef DUALNERF_HAVE_AVX512
-
-// RB rows x NV vectors of outputs held in registers; each weight vector is loaded once per k and reused
-// for the RB rows.
-template <int NV, int RB>
-__attribute__((target("avx512f"))) inline void layer_tile_avx512(const Layer& l, const float* in, int64_t ld_in,
-                                                                 float* out, int64_t ld_out, bool relu) {
-  __m512 acc[RB][NV];
-  for (int v = 0; v < NV; ++v) {
-    const __m512 bias = _mm512_loadu_ps(l.b + kLanes * v);
-    for (int r = 0; r < RB; ++r) acc[r][v] = bias;
-  }
-  for (int k = 0; k < l.in; ++k) {
-    __m512 w[NV];
-    for (int v = 0; v < NV; ++v) w[v] = _mm512_loadu_ps(l.wt + k * l.out_pad + kLanes * v);
-    for (int r = 0; r < RB; ++r) {
-      const __m512 x = _mm512_set1_ps(in[r * ld_in + k]);
-      for (int v = 0; v < NV; ++v) acc[r][v] = _mm512_fmadd_ps(x, w[v], acc[r][v]);
-    }
-  }
-  const __m512 zero = _mm512_setzero_ps();
-  for (int r = 0; r < RB; ++r)
-    for (int v = 0; v < NV; ++v) {
-      const __m512 y = relu ? _mm512_max_ps(acc[r][v], zero) : acc[r][v];
-      const int left = l.out - kLanes * v;
-      const __mmask16 mask = first_lanes(left);
-      _mm512_mask_storeu_ps(out + r * ld_out + kLanes * v, mask, y);
-    }
-}
-
-template <int NV>
-__attribute__((target("avx512f"))) void layer_rows_avx512(const Layer& l, const float* in, int64_t ld_in,
-                                                          int64_t rows, float* out, int64_t ld_out, bool relu) {
-  constexpr int RB = NV >= 4 ? 4 : 8;
-  int64_t r = 0;
-  for (; r + RB <= rows; r += RB) layer_tile_avx512<NV, RB>(l, in + r * ld_in, ld_in, out + r * ld_out, ld_out, relu);
-  for (; r < rows; ++r) layer_tile_avx512<NV, 1>(l, in + r * ld_in, ld_in, out + r * ld_out, ld_out, relu);
-}
-
-#endif
-
-void layer_rows(const Layer& l, const float* in, int64_t ld_in, int64_t rows, float* out, int64_t ld_out, bool relu,
-                bool vector_path) {
-#ifdef DUALNERF_HAVE_AVX512
-  if (vector_path) {
-    switch (l.out_pad / kLanes) {
-      case 1: return layer_rows_avx512<1>(l, in, ld_in, rows, out, ld_out, relu);
-      case 2: return layer_rows_avx512<2>(l, in, ld_in, rows, out, ld_out, relu);
-      case 4: return layer_rows_avx512<4>(l, in, ld_in, rows, out, ld_out, relu);
-      case 8: return layer_rows_avx512<8>(l, in, ld_in, rows, out, ld_out, relu);
-    }
-  }
-#endif
-  layer_rows_portable(l, in, ld_in, rows, out, ld_out, relu);
-}
 
 // ---- bfloat16 MLPs (field_inference(..., bf16=true)): for renders that tolerate bf16 rounding ----
 //
@@ -419,7 +343,7 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
     }
   }
   const int64_t n_blocks = (m + kInferBlock - 1) / kInferBlock;
-  at::parallel_for(0, n_blocks, 1, [&](int64_t block_begin, int64_t block_end) {
+  parallel_for(0, n_blocks, 1, [&](int64_t block_begin, int64_t block_end) {
 #ifdef DUALNERF_HAVE_AVX512
     if (tiles) amx_begin();     // the tile configuration is per thread
 #endif
@@ -470,7 +394,7 @@ std::vector<torch::Tensor> interleave_pair(std::vector<torch::Tensor> dense_a, s
     auto pair = torch::empty({4 * cells}, torch::kFloat32);
     float* o = pair.data_ptr<float>();
     const float *a = data_a[k], *b = data_b[k];
-    at::parallel_for(0, cells, 4096, [&](int64_t begin, int64_t end) {
+    parallel_for(0, cells, 4096, [&](int64_t begin, int64_t end) {
       for (int64_t i = begin; i < end; ++i) {
         o[4 * i] = a[2 * i];
         o[4 * i + 1] = a[2 * i + 1];
@@ -499,7 +423,7 @@ std::vector<torch::Tensor> mlp_inference(torch::Tensor features, torch::Tensor s
   const float *fp = features.data_ptr<float>(), *shp = sh.data_ptr<float>();
   float *sp = h_sigma.data_ptr<float>(), *cp = h_color.data_ptr<float>();
   const bool vec = vector_path && avx512_available();
-  at::parallel_for(0, (m + kInferBlock - 1) / kInferBlock, 1, [&](int64_t block_begin, int64_t block_end) {
+  parallel_for(0, (m + kInferBlock - 1) / kInferBlock, 1, [&](int64_t block_begin, int64_t block_end) {
     Scratch scratch(mlps);
     for (int64_t blk = block_begin; blk < block_end; ++blk) {
       const int64_t begin = blk * kInferBlock, rows = std::min(m, begin + kInferBlock) - begin;

@@ -1,6 +1,7 @@
 // Shared declarations of the field kernels (dualnerf.kernels), one extension built from the files beside
 // this one: lookups.cpp (feature-table look-ups and their backward), inference.cpp (look-ups + MLPs of a
-// field without autograd, bf16/AMX), adam.cpp (the trainer's Adam), sampler.cpp (the render sampler),
+// field without autograd, bf16/AMX; the layer code in mlp.h), mlp_train.cpp (the MLPs' training forward
+// and backward), adam.cpp (the trainer's Adam), sampler.cpp (the render sampler),
 // composite.cpp (a render's packing and compositing) and module.cpp (the Python bindings).
 //
 // Build flags (dualnerf/kernels/__init__.py): -O3 -ffp-contract=off, so no multiply-add is fused unless
@@ -8,12 +9,15 @@
 #pragma once
 
 #include <torch/types.h>   // ATen and the torch:: names; module.cpp adds the Python bindings
-#include <ATen/Parallel.h>
+
+#include <omp.h>
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <exception>
+#include <mutex>
 #include <optional>
 #include <vector>
 
@@ -32,6 +36,47 @@ inline bool avx512_available() { return __builtin_cpu_supports("avx512f"); }
 #else
 inline bool avx512_available() { return false; }
 #endif
+
+// ---- Threads ----
+//
+// The kernels run on their own OpenMP threads (set_threads, module.cpp), not torch's intra-op pool:
+// the pipeline keeps torch on one thread, because torch's element-wise kernels compute a chunk's tail
+// with scalar code that rounds differently from the vector code, so their bits depend on how many
+// threads split a tensor. Every kernel here is written so that an output element does not depend on
+// which thread or chunk computed it (no cross-element sums in a partition-dependent order), so the
+// kernels may use any number of threads and still give the same bits.
+int kernel_threads();
+
+// f(chunk_begin, chunk_end) over [begin, end) in at most kernel_threads() contiguous chunks whose sizes
+// are multiples of `grain` (but the last); the first exception thrown in a chunk is rethrown here.
+template <typename F>
+void parallel_for(int64_t begin, int64_t end, int64_t grain, F&& f) {
+  const int64_t n = end - begin;
+  if (n <= 0) return;
+  grain = std::max<int64_t>(grain, 1);
+  const int64_t grains = (n + grain - 1) / grain;
+  const int64_t chunks = std::min<int64_t>(kernel_threads(), grains);
+  if (chunks <= 1 || omp_in_parallel()) {
+    f(begin, end);
+    return;
+  }
+  const int64_t size = (grains + chunks - 1) / chunks * grain;
+  std::exception_ptr error;
+  std::mutex error_lock;
+#pragma omp parallel num_threads(static_cast<int>(chunks))
+  {
+    const int64_t b = begin + omp_get_thread_num() * size, e = std::min(end, b + size);
+    if (b < e) {
+      try {
+        f(b, e);
+      } catch (...) {
+        std::lock_guard<std::mutex> hold(error_lock);
+        if (!error) error = std::current_exception();
+      }
+    }
+  }
+  if (error) std::rethrow_exception(error);
+}
 
 struct Axis {
   int64_t i0;   // lower corner index
@@ -106,7 +151,7 @@ inline std::vector<const float*> table_data(const std::vector<torch::Tensor>& de
 template <typename Block>
 void for_each_block(int64_t m, Block&& block) {
   constexpr int64_t kBlock = 1024;
-  at::parallel_for(0, (m + kBlock - 1) / kBlock, 1, [&](int64_t block_begin, int64_t block_end) {
+  parallel_for(0, (m + kBlock - 1) / kBlock, 1, [&](int64_t block_begin, int64_t block_end) {
     for (int64_t b = block_begin; b < block_end; ++b) block(b * kBlock, std::min(m, (b + 1) * kBlock));
   });
 }
@@ -167,6 +212,18 @@ __attribute__((target("avx512f"))) inline __m512 exp16(__m512 x) {
 }
 #endif
 
+// exp16 for one float, in the same operations (fused multiply-adds included), hence the same bits: a
+// kernel's portable path and a vector path's row tails use it where the vector code uses exp16.
+inline float exp_scalar(float x) {
+  x = std::min(std::max(x, -87.0f), 88.0f);
+  const float n = std::nearbyint(x * 1.44269504088896341f);
+  float r = std::fma(-n, 0.693145751953125f, x);
+  r = std::fma(-n, 1.428606765330187e-06f, r);
+  float p = 1.0f / 5040.0f;
+  for (const float k : {1.0f / 720.0f, 1.0f / 120.0f, 1.0f / 24.0f, 1.0f / 6.0f, 0.5f, 1.0f, 1.0f}) p = std::fma(p, r, k);
+  return std::ldexp(p, static_cast<int>(n));
+}
+
 // Every table's features for points [begin, end) into rows (i - row0) of out_a (and out_b: the second
 // field's tables data_b, when given); lookups.cpp.
 void lookup_range(const std::vector<Table>& tables, const std::vector<const float*>& data_a,
@@ -203,6 +260,16 @@ std::vector<torch::Tensor> mlp_inference(torch::Tensor features, torch::Tensor s
                                          bool vector_path);
 bool vector_path_available();
 bool amx_path_available();
+
+// mlp_train.cpp
+std::vector<torch::Tensor> mlp_train_forward(torch::Tensor features, torch::Tensor sh,
+                                             std::optional<torch::Tensor> sh_index, std::vector<torch::Tensor> mlp,
+                                             bool vector_path);
+std::vector<torch::Tensor> mlp_train_backward(torch::Tensor grad_sigma, torch::Tensor grad_color,
+                                              torch::Tensor features, torch::Tensor hidden_density,
+                                              torch::Tensor color_in, torch::Tensor hidden_color,
+                                              std::vector<torch::Tensor> mlp, std::vector<torch::Tensor> weights,
+                                              int64_t n_sh, bool vector_path);
 
 // adam.cpp
 void adam_step(torch::Tensor param, torch::Tensor grad, torch::Tensor exp_avg, torch::Tensor exp_avg_sq, double beta1,

@@ -313,7 +313,7 @@ void accumulate_gradients(const std::vector<Table>& tables, const float* xp, con
   const bool vec = vector_path && avx512_available();
   const int64_t n_vec = vec ? m / kLookupLanes * kLookupLanes : 0;
   const std::vector<float> xs = coordinate_arrays(xp, 0, n_vec);
-  at::parallel_for(0, static_cast<int64_t>(tables.size()), 1, [&](int64_t begin, int64_t end) {
+  parallel_for(0, static_cast<int64_t>(tables.size()), 1, [&](int64_t begin, int64_t end) {
     for (int64_t k = begin; k < end; ++k) {
       const Table& t = tables[k];
       float* grad = grads[k];

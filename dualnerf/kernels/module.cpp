@@ -2,7 +2,23 @@
 
 #include "kernels.h"
 
+#include <atomic>
+
+namespace {
+std::atomic<int> threads{1};
+}
+
+int dualnerf::kernel_threads() { return threads.load(std::memory_order_relaxed); }
+
+// The kernels' thread count (see kernels.h, "Threads"): any count gives the same bits.
+void set_threads(int64_t n) {
+  TORCH_CHECK(n >= 1, "set_threads: at least one thread");
+  threads.store(static_cast<int>(n), std::memory_order_relaxed);
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
+  module.def("set_threads", &set_threads, "the number of threads the kernels use (the results do not depend on it)");
+  module.def("get_threads", &dualnerf::kernel_threads, "the number of threads the kernels use");
   module.def("encode_forward", &encode_forward, "fused dense-grid + plane feature look-ups");
   module.def("encode_forward_pair", &encode_forward_pair, "encode_forward for two fields' tables at once");
   module.def("interleave_pair", &interleave_pair, "two fields' tables as one (cells, 4) table each");
@@ -13,6 +29,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
   module.def("adam_step_touched", &adam_step_touched, "adam_step (skip zero) on the touched chunks of a gradient buffer");
   module.def("zero_touched", &zero_touched, "zero the flagged chunks of a gradient buffer and the flags");
   module.def("encode_backward_into", &encode_backward_into, "encode_backward into persistent buffers, flagging touched chunks");
+  module.def("mlp_train_forward", &mlp_train_forward, "a field's MLPs for training: outputs and saved activations");
+  module.def("mlp_train_backward", &mlp_train_backward, "the backward of mlp_train_forward (thread-count independent sums)");
   module.def("mlp_inference", &mlp_inference, "a field's MLPs on given features (no autograd)");
   module.def("occupied_samples", &occupied_samples, "a render's occupied sample points, flat index, ray and ray offsets");
   module.def("composite_rays", &composite_rays, "a render's colour and opacity per ray from its evaluated samples");

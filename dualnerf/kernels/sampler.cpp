@@ -10,7 +10,8 @@ using namespace dualnerf;
 // occupancy mask at the interval midpoints. On AVX-512 the proposal runs for 16 rays at once, one per
 // lane (its exp and sequential sums were 70% of a render's sampler). The same formulas as proposal_intervals and
 // OccupancyGrid.occupied in torch, which stay the reference; they agree to float32 rounding (exp and
-// the sums round differently), and the cells of given points are bit-for-bit the reference's.
+// the sums round differently), and the cells of given points are bit-for-bit the reference's. The
+// AVX-512 and portable paths give the same bits, so a ray's samples do not depend on its chunk.
 inline int64_t grid_cell(const float* o, const float* d, float t, float half_r, float top, int64_t r) {
   int64_t cell[3];
   for (int a = 0; a < 3; ++a) {
@@ -45,7 +46,7 @@ void proposal_scalar(const SamplerInputs& in, int64_t i, float* pdf, float* cdf,
     const float tau = in.fscale * in.grid[grid_cell(o, d, tc, in.half_r, in.top, in.r)] * step;
     float w = 0.0f;
     if (tau > 0.0f) {
-      const float survive = std::exp(-tau);
+      const float survive = exp_scalar(-tau);
       w = transmittance * (1.0f - survive);
       transmittance *= survive;
     }
@@ -67,7 +68,7 @@ void proposal_scalar(const SamplerInputs& in, int64_t i, float* pdf, float* cdf,
 
 #ifdef DUALNERF_HAVE_AVX512
 // proposal_scalar for the 16 rays i0 .. i0 + 15, one per lane (pdf, cdf with stride 16), in the same
-// float operations except the exp (exp16, within a few ulp of std::exp).
+// float operations (exp16 is exp_scalar's vector form), hence the same bits.
 __attribute__((target("avx512f"))) void proposal_avx512(const SamplerInputs& in, int64_t i0, float* pdf, float* cdf) {
   const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
   const __m512i three = _mm512_mullo_epi32(lane, _mm512_set1_epi32(3));
@@ -187,7 +188,7 @@ std::vector<torch::Tensor> ray_samples(torch::Tensor origins, torch::Tensor dirs
                          delta.data_ptr<float>(), occupied.data_ptr<bool>()};
   // 16 rays at a time on AVX-512 (one per lane; the grid's cells fit int32 there).
   const bool vec = vector_path && avx512_available() && r * r * r < (int64_t(1) << 31);
-  at::parallel_for(0, n_rays, 16, [&](int64_t begin, int64_t end) {
+  parallel_for(0, n_rays, 16, [&](int64_t begin, int64_t end) {
     std::vector<float> pdf(16 * P), cdf(16 * (P + 1)), edges(S + 1);
     int64_t i = begin;
 #ifdef DUALNERF_HAVE_AVX512

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 
 
 def register(subparsers) -> None:
@@ -13,8 +14,17 @@ def register(subparsers) -> None:
     ls = sub.add_parser("ls", help="list entries: key, stage, label, params summary, size, age")
     ls.add_argument("--stage", help="only entries of this stage")
     ls.set_defaults(handler=_ls)
-    verify = sub.add_parser("verify", help="check every entry's files against its manifest")
+    verify = sub.add_parser("verify", help="check every entry's files against its manifest, or recompute entries "
+                                           "and compare their bytes (--recompute)")
     verify.add_argument("--quarantine", action="store_true", help="move damaged entries to quarantine/")
+    verify.add_argument("--recompute", metavar="KEY|STAGE",
+                        help="compute this entry (a key or unique prefix; or a stage name: its newest entries) "
+                             "again from scratch in a scratch store and compare every file with the cached bytes")
+    verify.add_argument("--limit", type=int, default=1, help="with a stage name: how many entries (default 1)")
+    verify.add_argument("--threads", type=int, default=0,
+                        help="threads for the recomputation (default: all cores; results must not depend on it)")
+    verify.add_argument("--scratch", type=Path, default=None,
+                        help="scratch store folder (default: a temporary folder, deleted afterwards)")
     verify.set_defaults(handler=_verify)
     gc = sub.add_parser("gc", help="remove entries no run record (under --runs) or pin reaches")
     gc.add_argument("--dry-run", action="store_true", help="only list what would be removed")
@@ -86,6 +96,8 @@ def _verify(args: argparse.Namespace) -> int:
     from stages.cli import open_store
 
     store = open_store(args)
+    if args.recompute:
+        return _recompute(store, args)
     bad = 0
     count = 0
     for key, _ in list(store.entries()):
@@ -104,6 +116,38 @@ def _verify(args: argparse.Namespace) -> int:
     print(f"verified {count} entries: {count - bad} intact, {bad} damaged"
           + (f"; {len(orphans)} orphaned temporary folder(s)" if orphans else ""))
     return 1 if bad else 0
+
+
+def _recompute(store, args: argparse.Namespace) -> int:
+    """Recompute entries from scratch and compare bytes: 0 when every one is identical, 1 otherwise."""
+    import tempfile
+
+    from pipeline.executors import cpu_count
+    from pipeline.recompute import entries_of, recompute
+    from stages import STAGES
+    from stages.numerics import FILE_COMPARERS
+
+    keys = entries_of(store, args.recompute)[: max(1, args.limit)]
+    threads = args.threads or cpu_count()
+    differing = 0
+    with tempfile.TemporaryDirectory(prefix="dualnerf-recompute-") as tmp:
+        scratch = args.scratch or Path(tmp)
+        for key in keys:
+            label = (store.manifest(key) or {}).get("label", key[:12])
+            print(f"recomputing {label} ({key[:12]}) from scratch on {threads} thread(s) ...", flush=True)
+            result = recompute(store, key, STAGES, scratch, FILE_COMPARERS, threads=threads)
+            if result.identical:
+                print(f"IDENTICAL {key[:12]} {result.label}: every file has the cached bytes "
+                      f"(recomputed in {result.seconds:.1f} s)")
+            else:
+                differing += 1
+                print(f"DIFFERENT {key[:12]} {result.label}: {len(result.differences)} file(s) differ "
+                      f"(recomputed in {result.seconds:.1f} s)")
+                for line in result.differences:
+                    print(f"  {line}")
+    print(f"recomputed {len(keys)} entr{'y' if len(keys) == 1 else 'ies'}: {len(keys) - differing} identical, "
+          f"{differing} different")
+    return 1 if differing else 0
 
 
 def _gc(args: argparse.Namespace) -> int:

@@ -1,0 +1,88 @@
+// The MLP layer code shared by the inference kernels (inference.cpp) and the training kernels
+// (mlp_train.cpp): y = b + sum_k x_k W[:, k] per row, accumulated as a chain of fused multiply-adds in k
+// order starting from the bias, on the AVX-512 path and the portable path alike (std::fma rounds exactly
+// like the vector instruction): a row's result does not depend on the path, its block, its neighbours or
+// the thread count.
+#pragma once
+
+#include "kernels.h"
+
+namespace dualnerf {
+
+struct Layer {
+  const float* wt;   // (in, out_pad) row-major: W transposed, zero-padded columns
+  const float* b;    // (out_pad), zero-padded
+  int in, out, out_pad;
+};
+
+// Rows [0, rows) of out = relu?(in @ wt + b), portable code.
+inline void layer_rows_portable(const Layer& l, const float* in, int64_t ld_in, int64_t rows, float* out, int64_t ld_out,
+                         bool relu) {
+  for (int64_t r = 0; r < rows; ++r) {
+    const float* x = in + r * ld_in;
+    float* y = out + r * ld_out;
+    for (int j = 0; j < l.out; ++j) {
+      float acc = l.b[j];
+      for (int k = 0; k < l.in; ++k) acc = std::fma(x[k], l.wt[k * l.out_pad + j], acc);
+      y[j] = relu ? (acc > 0.0f ? acc : 0.0f) : acc;
+    }
+  }
+}
+
+#ifdef DUALNERF_HAVE_AVX512
+
+// RB rows x NV vectors of outputs held in registers; each weight vector is loaded once per k and reused
+// for the RB rows.
+template <int NV, int RB>
+__attribute__((target("avx512f"))) inline void layer_tile_avx512(const Layer& l, const float* in, int64_t ld_in,
+                                                                 float* out, int64_t ld_out, bool relu) {
+  __m512 acc[RB][NV];
+  for (int v = 0; v < NV; ++v) {
+    const __m512 bias = _mm512_loadu_ps(l.b + kLanes * v);
+    for (int r = 0; r < RB; ++r) acc[r][v] = bias;
+  }
+  for (int k = 0; k < l.in; ++k) {
+    __m512 w[NV];
+    for (int v = 0; v < NV; ++v) w[v] = _mm512_loadu_ps(l.wt + k * l.out_pad + kLanes * v);
+    for (int r = 0; r < RB; ++r) {
+      const __m512 x = _mm512_set1_ps(in[r * ld_in + k]);
+      for (int v = 0; v < NV; ++v) acc[r][v] = _mm512_fmadd_ps(x, w[v], acc[r][v]);
+    }
+  }
+  const __m512 zero = _mm512_setzero_ps();
+  for (int r = 0; r < RB; ++r)
+    for (int v = 0; v < NV; ++v) {
+      const __m512 y = relu ? _mm512_max_ps(acc[r][v], zero) : acc[r][v];
+      const int left = l.out - kLanes * v;
+      const __mmask16 mask = first_lanes(left);
+      _mm512_mask_storeu_ps(out + r * ld_out + kLanes * v, mask, y);
+    }
+}
+
+template <int NV>
+__attribute__((target("avx512f"))) void layer_rows_avx512(const Layer& l, const float* in, int64_t ld_in,
+                                                          int64_t rows, float* out, int64_t ld_out, bool relu) {
+  constexpr int RB = NV >= 4 ? 4 : 8;
+  int64_t r = 0;
+  for (; r + RB <= rows; r += RB) layer_tile_avx512<NV, RB>(l, in + r * ld_in, ld_in, out + r * ld_out, ld_out, relu);
+  for (; r < rows; ++r) layer_tile_avx512<NV, 1>(l, in + r * ld_in, ld_in, out + r * ld_out, ld_out, relu);
+}
+
+#endif
+
+inline void layer_rows(const Layer& l, const float* in, int64_t ld_in, int64_t rows, float* out, int64_t ld_out, bool relu,
+                bool vector_path) {
+#ifdef DUALNERF_HAVE_AVX512
+  if (vector_path) {
+    switch (l.out_pad / kLanes) {
+      case 1: return layer_rows_avx512<1>(l, in, ld_in, rows, out, ld_out, relu);
+      case 2: return layer_rows_avx512<2>(l, in, ld_in, rows, out, ld_out, relu);
+      case 4: return layer_rows_avx512<4>(l, in, ld_in, rows, out, ld_out, relu);
+      case 8: return layer_rows_avx512<8>(l, in, ld_in, rows, out, ld_out, relu);
+    }
+  }
+#endif
+  layer_rows_portable(l, in, ld_in, rows, out, ld_out, relu);
+}
+
+}  // namespace dualnerf

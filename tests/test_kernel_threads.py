@@ -1,0 +1,145 @@
+"""Every fused kernel gives the same bits on 1, 2, 3 and 4 threads and on its AVX-512 and portable paths
+(dualnerf/kernels/kernels.h, "Threads"): an output element never depends on which chunk or code path
+computed it. Sizes are odd so that chunks split the vector blocks and leave tails."""
+import shutil
+
+import pytest
+import torch
+
+from dualnerf import kernels
+from dualnerf.fields import FieldConfig, RadianceField
+from dualnerf.rendering import ray_cube_bounds
+
+pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
+                                reason="no C++ compiler: the fused kernel cannot be built here")
+
+CONFIG = FieldConfig(grid_resolutions=(8, 16, 32), plane_resolutions=(32, 64), hidden_width=64)
+THREADS = (1, 2, 3, 4)
+
+
+def field(seed):
+    model = RadianceField(CONFIG, torch.Generator().manual_seed(seed))
+    with torch.no_grad():                      # non-trivial tables (they start near zero)
+        for p in model.parameters():
+            p.add_(torch.randn(p.shape, generator=torch.Generator().manual_seed(seed + 1)) * 0.3)
+    return model
+
+
+def points(m, seed=0):
+    return torch.rand(m, 3, generator=torch.Generator().manual_seed(seed)) * 2.2 - 1.1
+
+
+def flat(value):
+    if isinstance(value, torch.Tensor):
+        return [value]
+    return [t for v in value for t in flat(v)]
+
+
+def same_everywhere(compute, monkeypatch):
+    """compute() on every thread count and both code paths; all results bit-identical (and returned)."""
+    results = []
+    for vector in ("1", "0"):
+        monkeypatch.setenv("DUALNERF_KERNEL_VECTOR", vector)
+        for n in THREADS:
+            kernels.set_threads(n)
+            results.append(flat(compute()))
+    kernels.set_threads(1)
+    for result in results[1:]:
+        assert len(result) == len(results[0])
+        for got, want in zip(result, results[0]):
+            assert torch.equal(got, want), "a kernel's result depends on the thread count or the code path"
+    return results[0]
+
+
+def test_look_ups_forward_and_backward(monkeypatch):
+    a, b = field(0), field(5)
+    x = points(2053)
+    grad = torch.randn(2053, sum(e.output_dim for e in a._encodings()), generator=torch.Generator().manual_seed(3))
+    module = kernels.grid_kernel()
+    same_everywhere(lambda: module.encode_forward(x, *a.grid_tables(), kernels.vector_path()), monkeypatch)
+    same_everywhere(lambda: module.encode_forward_pair(x, *a.grid_tables(), *b.grid_tables(), kernels.vector_path()),
+                    monkeypatch)
+    same_everywhere(lambda: module.encode_backward(x, grad, *a.grid_tables(), kernels.vector_path()), monkeypatch)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_field_inference_single_and_dual(precision, monkeypatch):
+    a, b = field(0), field(5)
+    x = points(1999)
+    sh = a.direction_features(torch.nn.functional.normalize(torch.randn(1999, 3), dim=-1))
+    monkeypatch.setenv("DUALNERF_KERNEL_AMX", "0")    # AMX tiles and the emulation differ (keyed: bf16_mlp)
+    with torch.no_grad(), kernels.mlp_precision(precision):
+        same_everywhere(lambda: kernels.field_inference(x, sh, a.grid_tables(), a.mlp_layers()), monkeypatch)
+        same_everywhere(lambda: kernels.field_inference(x, sh, a.grid_tables(), a.mlp_layers(),
+                                                        second=(b.grid_tables(), b.mlp_layers()), blend=(0.3, 0.1)),
+                        monkeypatch)
+
+
+def test_mlp_training_forward_and_backward(monkeypatch):
+    model = field(2)
+    m = 3 * 1024 + 77                                  # several gradient groups and a short last block
+    n_features = model.mlp_layers()[0].in_features
+    features = torch.randn(m, n_features, generator=torch.Generator().manual_seed(4), requires_grad=True)
+    sh = model.direction_features(torch.nn.functional.normalize(torch.randn(50, 3), dim=-1))
+    index = torch.randint(50, (m,), generator=torch.Generator().manual_seed(6))
+    weights = torch.randn(m, 4, generator=torch.Generator().manual_seed(7))
+
+    def step():
+        model.zero_grad()
+        features.grad = None
+        h_sigma, h_color = kernels.train_heads(features, sh, model.mlp_layers(), sh_index=index)
+        ((h_sigma * weights[:, 0]).sum() + (h_color * weights[:, 1:]).square().sum()).backward()
+        return h_sigma.detach(), h_color.detach(), features.grad, [p.grad for p in model.parameters() if p.grad is not None]
+
+    h_sigma, h_color, grad_features, *grads = same_everywhere(step, monkeypatch)
+    # ... and they are the layers' gradients (torch's nn.Linear, to float32 rounding).
+    model.zero_grad()
+    features.grad = None
+    ref_sigma, ref_color = model._heads_block(features, sh[index])
+    ((ref_sigma * weights[:, 0]).sum() + (ref_color * weights[:, 1:]).square().sum()).backward()
+    torch.testing.assert_close(h_sigma, ref_sigma.detach(), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(h_color, ref_color.detach(), rtol=1e-5, atol=1e-5)
+    # Gradients as a whole (a hidden unit within rounding of 0 may take the other side of its ReLU).
+    for got, want in zip([grad_features, *grads], [features.grad, *[p.grad for p in model.parameters()
+                                                                     if p.grad is not None]]):
+        assert float((got - want).norm() / want.norm()) < 1e-4
+
+
+def test_sampler_packing_and_compositing(monkeypatch):
+    model = field(0)
+    grid = model.occupancy
+    g = torch.Generator().manual_seed(1)
+    grid.density.copy_(torch.rand(grid.density.shape, generator=g) ** 6 * 80)
+    grid.mask.copy_(grid.density > 2)
+    n = 333
+    origins = torch.randn(n, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, -2.5])
+    dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    t_start, t_end = ray_cube_bounds(origins, dirs, torch.full((n,), 0.1), torch.full((n,), 6.0))
+    jitter = torch.rand(n, 47, generator=g)
+    module = kernels.grid_kernel()
+
+    def sample():
+        return module.ray_samples(origins, dirs, t_start, t_end, grid.density, grid.mask, 0.005, 256, 48, 0.15,
+                                  jitter, kernels.vector_path())
+
+    t, delta, mask = same_everywhere(sample, monkeypatch)
+    x, flat_index, ray, starts = same_everywhere(lambda: module.occupied_samples(origins, dirs, t, mask), monkeypatch)
+    h_sigma = torch.randn(x.shape[0], generator=g) * 3
+    h_color = torch.randn(x.shape[0], 3, generator=g)
+    background = torch.rand(n, 3, generator=g)
+    same_everywhere(lambda: module.composite_rays(h_sigma, h_color, flat_index, starts, delta, background, 15.0,
+                                                  kernels.vector_path()), monkeypatch)
+
+
+def test_adam_steps(monkeypatch):
+    g = torch.Generator().manual_seed(8)
+    param = torch.randn(70001, generator=g)
+    grad = torch.randn(70001, generator=g) * (torch.rand(70001, generator=g) < 0.4)
+
+    def step():
+        state = [param.clone(), grad.clone(), torch.zeros_like(param), torch.zeros_like(param)]
+        for _ in range(2):
+            kernels.grid_kernel().adam_step(*state, 0.9, 0.99, 0.01, 0.1, 1e-15, True)
+        return state[0], state[2], state[3]
+
+    same_everywhere(step, monkeypatch)
