@@ -160,8 +160,8 @@ class EditStage(Stage):
                                  f"{data_dir / 'scene.toml'} (edit_id '{p.edit_id}'); use cci_text 'instruction'.")
         cci_text = instruction if p.cci_text == "instruction" else spec.target_caption
         train = dataset.indices("train")
-        editor = _build_editor(p, data_dir, dataset, train, instruction)
-        encoder = _build_encoder(p, data_dir, dataset, spec)
+        editor = build_editor(p, data_dir, dataset, train, instruction)
+        encoder = build_encoder(p, data_dir, dataset, spec)
         config = idu_config(p)
         probe = None
         if p.convergence_every > 0:
@@ -278,7 +278,7 @@ def _scene_edit(data_dir: Path, p: EditParams):
     return spec.edit(p.edit_id)
 
 
-def _build_editor(p: EditParams, data_dir: Path, dataset, train, instruction: str):
+def build_editor(p: EditParams, data_dir: Path, dataset, train, instruction: str):
     from dualnerf.editors import load_editor
 
     if p.editor == "synthetic" and not p.edit_id:
@@ -289,7 +289,7 @@ def _build_editor(p: EditParams, data_dir: Path, dataset, train, instruction: st
                        originals=dataset.images[train])
 
 
-def _build_encoder(p: EditParams, data_dir: Path, dataset, spec):
+def build_encoder(p: EditParams, data_dir: Path, dataset, spec):
     """The CCI encoder. The proxy needs the scene's ground-truth edit to define its captions; without it,
     CCI off runs without scores and CCI on is an error."""
     from dualnerf.encoders import load_encoder
@@ -308,13 +308,11 @@ def _build_encoder(p: EditParams, data_dir: Path, dataset, spec):
 
 
 def _write_images(folder: Path, names, images) -> None:
-    import cv2
+    from stages.images import write_png
 
     folder.mkdir(parents=True, exist_ok=True)
     for name, image in zip(names, images):
-        path = folder / f"{Path(name).stem}.png"
-        if not cv2.imwrite(str(path), image[..., ::-1]):
-            raise OSError(f"could not write {path}")
+        write_png(folder / f"{Path(name).stem}.png", image)
 
 
 def plot_curves(curves: dict, path: Path) -> None:

@@ -217,11 +217,11 @@ class _FitRun:
         self.publish()
 
     def publish(self) -> None:
-        import cv2
         import numpy as np
         from skimage.metrics import structural_similarity
 
         from dualnerf.model import save_model
+        from stages.images import write_png
 
         out = Path(self.ctx.out_dir)
         (out / "heldout").mkdir(parents=True, exist_ok=True)
@@ -234,7 +234,7 @@ class _FitRun:
             per_view[name] = {"psnr": -10.0 * math.log10(max(mse, 1e-12)),
                               "ssim": float(structural_similarity(truth, image, channel_axis=-1, data_range=1.0))}
             png = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
-            cv2.imwrite(str(out / "heldout" / f"{Path(name).stem}.png"), png[..., ::-1])
+            write_png(out / "heldout" / f"{Path(name).stem}.png", png)
         metrics = {
             "split": self.eval_split,
             "psnr_mean": float(np.mean([v["psnr"] for v in per_view.values()])),

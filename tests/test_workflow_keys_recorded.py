@@ -12,7 +12,7 @@ RECORDED = json.loads(DATA.read_text())
 
 @pytest.mark.parametrize("workflow, overrides", CASES, ids=[case_id(w, o) for w, o in CASES])
 def test_workflow_expands_to_the_recorded_steps(workflow, overrides):
-    from stages.workflow import load_workflow
+    from experiments.workflow import load_workflow
 
     recorded = RECORDED["cases"][case_id(workflow, overrides)]
     now = describe(load_workflow(ROOT / "workflows" / f"{workflow}.toml", [NO_USER, *overrides]))

@@ -7,7 +7,8 @@ Run it only when the expansion is meant to change (a documented key change). It 
 commit before the experiment layer moved out of stages/, so the file is the reference the refactored
 expander must reproduce.
 
-Two things are recorded per step (and per cell: label, seed, scene, edit, axis values, its evaluate step):
+Steps are recorded in the workflow's order (the order they are listed, keyed and scheduled in). Two
+things are recorded per step (and per cell: label, seed, scene, edit, axis values, its evaluate step):
 - `shape`: a hash of what the workflow code decides, i.e. the stage, the parameters it passes (canonical
   JSON, as the key sees them before defaults are filled in) and the shapes of its inputs by name. Equal
   shapes mean equal keys under any stage version, package version or key format, so this comparison
@@ -88,7 +89,8 @@ def describe(workflow) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         keyed = compute_keys(workflow.steps, registry=STAGES, store=Store(Path(tmp) / "cache"))
     # 16 hex digits (64 bits) of each hash: plenty to tell ~800 steps apart, and a smaller file.
-    steps = sorted([k.step.stage, k.step.label, shape(k.step)[:16], k.key[:16]] for k in keyed.values())
+    # In the order the workflow creates them: the order steps are listed, keyed and scheduled in.
+    steps = [[step.stage, step.label, shape(step)[:16], keyed[step].key[:16]] for step in workflow.steps]
     cells = [[c.label, c.seed, c.scene, c.edit_id, [[k, v] for k, v in c.params], shape(c.evaluate)[:16],
               keyed[c.evaluate].key[:16]] for c in workflow.cells]
     return {"steps": steps, "cells": cells}

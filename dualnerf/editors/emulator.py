@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dualnerf.editors import EditorError, to_float_image, to_uint8_image
+from dualnerf.editors.base import EditorError, to_float_image, to_uint8_image
 
 EMULATOR_VERSION = 1
 

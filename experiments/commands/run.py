@@ -54,13 +54,13 @@ def default_jobs(steps) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from experiments.cli import open_store
+    from experiments.workflow import load_workflow
     from pipeline.dag import dry_run
     from pipeline.executors import make_executor
     from pipeline.paths import confined
     from pipeline.runner import run_steps
     from stages import STAGES
-    from stages.cli import open_store
-    from stages.workflow import load_workflow
 
     workflow = load_workflow(args.workflow, args.overrides)
     store = open_store(args)
@@ -112,7 +112,7 @@ def _print_banner(workflow) -> None:
     step = next((c.edit or c.perframe for c in reversed(workflow.cells) if (c.edit or c.perframe)), None)
     editor = step.params.get("editor", "synthetic") if step is not None else "-"
     encoder = workflow.cells[-1].evaluate.params.get("encoder", "proxy")
-    edited = sum(1 for c in workflow.cells if c.variant is not None)
+    edited = sum(1 for c in workflow.cells if not c.is_original)
     if len(workflow.scenes) <= 1 and len({c.edit_id for c in workflow.cells}) == 1:
         print(f"workflow {workflow.name}: scene '{workflow.scene_name}' ({workflow.scene_origin}), edit "
               f"'{workflow.edit_id}': \"{workflow.instruction}\"; {edited} edited cells + original")
@@ -127,8 +127,8 @@ def _print_banner(workflow) -> None:
 
 
 def _write_report(workflow, store, out_dir: Path | None, partial: bool) -> None:
-    from stages.commands.report import report_workflow
-    from stages.report import ReportError
+    from experiments.commands.report import report_workflow
+    from experiments.report import ReportError
 
     try:
         index = report_workflow(workflow, store, out_dir)

@@ -1,4 +1,4 @@
-"""The `dualnerf` command line. Subcommands live in `stages/commands/<name>.py`, each exposing
+"""The `dualnerf` command line. Subcommands live in `experiments/commands/<name>.py`, each exposing
 `register(subparsers)` and importing nothing heavy at module level, so `dualnerf --help` is instant.
 
 Exit status: 0 success; 1 internal error (traceback printed) or failed steps; 2 user error (a message
@@ -27,7 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="no progress bars; a log line every ~10%% of a step instead")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
-        module_name = f"stages.commands.{name}"
+        module_name = f"experiments.commands.{name}"
         try:
             module = importlib.import_module(module_name)
         except ModuleNotFoundError as exc:

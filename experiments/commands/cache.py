@@ -54,8 +54,8 @@ def _params_summary(params: dict, limit: int = 60) -> str:
 
 
 def _ls(args: argparse.Namespace) -> int:
+    from experiments.cli import open_store
     from pipeline.store import Store  # noqa: F401  (import-light module)
-    from stages.cli import open_store
 
     store = open_store(args)
     pinned = store.pinned()
@@ -83,7 +83,7 @@ def _ls(args: argparse.Namespace) -> int:
 
 
 def _verify(args: argparse.Namespace) -> int:
-    from stages.cli import open_store
+    from experiments.cli import open_store
 
     store = open_store(args)
     bad = 0
@@ -107,9 +107,9 @@ def _verify(args: argparse.Namespace) -> int:
 
 
 def _gc(args: argparse.Namespace) -> int:
+    from experiments.cli import open_store
     from pipeline.runrecord import referenced_keys
     from pipeline.store import StoreError
-    from stages.cli import open_store
 
     store = open_store(args)
     run_files = store.registered_run_files()
@@ -131,7 +131,7 @@ def _gc(args: argparse.Namespace) -> int:
 
 
 def _pin(args: argparse.Namespace) -> int:
-    from stages.cli import open_store
+    from experiments.cli import open_store
 
     store = open_store(args)
     key = store.resolve_prefix(args.key)
@@ -141,7 +141,7 @@ def _pin(args: argparse.Namespace) -> int:
 
 
 def _unpin(args: argparse.Namespace) -> int:
-    from stages.cli import open_store
+    from experiments.cli import open_store
 
     store = open_store(args)
     pinned = [k for k in store.pinned() if k.startswith(args.key)]
@@ -155,7 +155,7 @@ def _unpin(args: argparse.Namespace) -> int:
 
 
 def _salt(args: argparse.Namespace) -> int:
-    from stages.cli import open_store
+    from experiments.cli import open_store
 
     store = open_store(args)
     if args.value is None:
