@@ -88,9 +88,9 @@ class EditParams:
     edit_count: int = 1                 # views per dataset update (IN2N: 1)
     rays_per_batch: int = 1024          # (paper scale: 4096)
     lr: float = 1e-2                    # f_D's is lr / w_max_color when dual_lr_scale (see dualnerf.idu)
-    dual_lr_scale: bool = True
-    w_max_density: float = 0.1          # eq. 6 upper bounds (paper: 0.1)
-    w_max_color: float = 0.1
+    dual_lr_scale: bool = True          # scale f_D's learning rate by 1 / w_max_color (see lr)
+    w_max_density: float = 0.1          # eq. 6 upper bound of the density blend weight (paper: 0.1)
+    w_max_color: float = 0.1            # eq. 6 upper bound of the colour blend weight (paper: 0.1)
     blend_rate: float = 0.005           # eq. 6 lambda (paper: 0.005)
     T0: float = 1.0                     # eq. 8 initial temperature (paper: 1)
     lpips_weight: float = 0.0           # RGB + this x LPIPS on rendered patches (paper Sec. 4.4, IN2N: 1, as in
@@ -100,8 +100,8 @@ class EditParams:
     patch_share: float = 0.5            # share of each batch as patches (>= 1 patch: all 1024 rays at 32x32)
     update_precision: str = "bf16"      # view-update renders' MLPs: "bf16" (AMX tiles where the CPU has them;
                                         # module docstring) or "fp32"; training, probes and evaluation: fp32
-    seed: int = 0
-    device: str = "cpu"
+    seed: int = 0                       # training, annealing and editor seeds (recorded in the manifest)
+    device: str = "cpu"                 # "cpu" or "cuda"
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
     # Non-semantic (resume is exact from any round). A checkpoint of a campsite dual-field edit takes ~1 s
     # (f_D, Adam's moments, the images: ~160 MB); every 50 rounds (500 iterations, ~1.5 min of editing on

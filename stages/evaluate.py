@@ -48,15 +48,15 @@ class EvaluateError(ValueError):
 
 @dataclass(frozen=True)
 class EvaluateParams:
-    n_frames: int = 60
+    n_frames: int = 60                  # camera-path frames (at least 2)
     path_scale: float = 1.0             # camera-path frames at this fraction of the dataset resolution
     encoder: str = "proxy"              # "proxy" (weight-free stand-in, NOT CLIP) or "clip"
     encoder_model: str = ""             # CLIP model folder (dualnerf models export-clip) for encoder "clip"
     source_caption: str = ""            # default: the edit's captions from the scene's scene.toml
-    target_caption: str = ""
+    target_caption: str = ""            # default: as source_caption
     edit_id: str = ""                   # ground-truth edit to compare against on procedural scenes
     lpips_net: str = "alex"             # LPIPS backbone of the LPIPS metrics: "alex" or "vgg"
-    device: str = "cpu"
+    device: str = "cpu"                 # "cpu" or "cuda"
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
     chunk: int = 8192                   # non-semantic: rays per rendering batch
 

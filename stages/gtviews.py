@@ -36,7 +36,7 @@ KINDS = layout.GROUND_TRUTH_KINDS
 
 @dataclass(frozen=True)
 class GroundTruthViewsParams:
-    edit_id: str = ""
+    edit_id: str = ""              # the scene edit whose ground truth is rendered
     scene_supersample: int = 0     # the procedural scene's supersample (0: its default), to re-render it exactly
 
 

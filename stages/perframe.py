@@ -43,8 +43,8 @@ class PerFrameParams:
     edit_id: str = ""              # the scene edit (the emulator's ground truth)
     editor: str = "synthetic"      # "synthetic" (InstructPix2Pix EMULATOR, a simulator) or "ip2p"
     editor_model: str = ""         # ip2p: local diffusers folder or hub id
-    seed: int = 0
-    device: str = "cpu"
+    seed: int = 0                  # editor seed: image k is edited with (seed, k)
+    device: str = "cpu"            # "cpu" or "cuda" (the editor's)
     num_threads: int = 0           # non-semantic; 0: the threads the engine grants
 
 

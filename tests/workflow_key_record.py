@@ -3,9 +3,10 @@ and what tests/test_workflow_keys_recorded.py compares them with.
 
     python -m tests.workflow_key_record      # rewrites tests/data/workflow_keys.json
 
-Run it only when the expansion is meant to change (a documented key change). It was run once, on the
-commit before the experiment layer moved out of stages/, so the file is the reference the refactored
-expander must reproduce.
+Run it only when the expansion is meant to change (a documented key change) or a case is added. It was
+run on the commit before the experiment layer moved out of stages/, so the file is the reference the
+refactored expander must reproduce; cases added since then were recorded when they were added (a rerun
+reproduces the earlier ones exactly, which tests/test_workflow_keys_recorded.py checks).
 
 Steps are recorded in the workflow's order (the order they are listed, keyed and scheduled in). Two
 things are recorded per step (and per cell: label, seed, scene, edit, axis values, its evaluate step):
@@ -44,6 +45,8 @@ CASES = [
     ("sweep_blend", ["seeds=[0,1,2]"]),
     ("sweep_blend", ["methods=[\"per-frame\",\"DualNeRF\"]", "exclude=[]"]),
     ("sweep_blend", ["lambda=[0.02]", "exclude=[]", "scene.supersample=2"]),
+    # Added with the workflow (after the move, so recorded from the code that added it).
+    ("reconstruct", []),
 ]
 
 

@@ -1,4 +1,4 @@
-"""`dualnerf report WORKFLOW --out DIR`: the report of a finished workflow (tables, grid, curves, HTML).
+"""`dualnerf report WORKFLOW [--out DIR]`: the report of a finished workflow (tables, grid, curves, HTML).
 
 It expands the workflow exactly as `dualnerf run` does, looks each evaluate/edit step's result up in the
 store by its key (computing nothing), and hands the folders to `experiments.report.build_report`.
@@ -16,7 +16,7 @@ def register(subparsers) -> None:
         description="Build tables (Markdown/CSV/JSON), an image grid, training curves and index.html from "
                     "the cached results of a workflow. Runs nothing: missing results are an error.")
     parser.add_argument("workflow", help="workflow TOML file")
-    parser.add_argument("--out", type=Path, default=None,
+    parser.add_argument("--out", type=Path, default=None, metavar="DIR",
                         help="report folder (default: the workflow's report_dir, e.g. reports/<scene>)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="the same overrides as `dualnerf run` (repeatable)")

@@ -9,6 +9,8 @@ optional inputs that the cell's method or scene leaves out (`_reads`):
                              |              perframe[seed] (<- gtviews) -> evaluate[per-frame, ...]
                              \\-> evaluate[original]  (the "original" input of edited rows)
 
+With `methods = []` a cell is its unedited row alone: the reconstruction (SfM, f_S, its evaluation).
+
 Identical invocations share one Step (and one key in the store), so preprocess and the static fit run
 once per scene and fit setting. Labels name the scene edit (in multi-scene grids), the method, the seed
 and the axis values the row reads; they are what run records and logs show.
@@ -49,7 +51,7 @@ class _Row:
         self.inputs: dict[str, list[str]] = {}        # node -> the input nodes its step reads
         self.params: dict[str, dict] = {}             # node -> the step's parameters
         self.read: dict[str, dict] = {}               # node -> {axis name: value} its parameters came from
-        self._visit(ROW)
+        self._visit("original" if method.is_original else ROW)
 
     # ---- shape -----------------------------------------------------------------------------------
     def _reads(self, node: str) -> list[str]:
@@ -156,7 +158,7 @@ class _Row:
                 made[node] = builder.make(_stage_of(node), self.params[node], inputs, label=self._label(node))
             return made[node]
 
-        make(ROW)
+        make("original" if self.method.is_original else ROW)
         return made
 
 
@@ -165,6 +167,9 @@ def expand(path: Path, settings: dict, stage_params: dict, axes_doc: dict) -> Wo
     scenes_dir = Path(settings.get("scenes_dir", DEFAULT_SCENES_DIR))
     scenes = {name: load_scene(path, settings, name, scenes_dir) for name in names}
     methods = {m.label: m for m in grid.parse_methods(WorkflowError, path, settings)}
+    reconstruct_only = not methods          # methods = []: the unedited rows alone
+    if reconstruct_only:
+        methods = {ORIGINAL.label: ORIGINAL}
     seeds = grid.parse_seeds(WorkflowError, path, settings.get("seeds", [0]))
     param_axes, fixed = grid.param_axes(WorkflowError, path, stage_params, axes_doc)
     axes = grid.grid_axes(names, lambda scene: scenes[scene].edit_ids, list(methods.values()), seeds, param_axes)
@@ -187,7 +192,7 @@ def expand(path: Path, settings: dict, stage_params: dict, axes_doc: dict) -> Wo
         scene = scenes[point["scene"]]
         key = (scene.name, point["edit"])
         if key not in texts:
-            texts[key] = captions(path, settings, scene, point["edit"])
+            texts[key] = captions(path, settings, scene, point["edit"], required=not reconstruct_only)
         row = _Row(point, scene, methods[point["method"]], texts[key], fixed, param_axes, single)
         steps = row.steps(builder)
         original = steps["original"]
@@ -195,6 +200,9 @@ def expand(path: Path, settings: dict, stage_params: dict, axes_doc: dict) -> Wo
             listed.add(id(original))
             cells.append(Cell(ORIGINAL, original, scene=scene.name, edit_id=point["edit"],
                               params=row.axes_read("original")))
+        if reconstruct_only:
+            read_anywhere |= {name for name, _ in row.axes_read("original")}
+            continue
         evaluate = steps[ROW]
         read_anywhere |= {name for name, _ in row.axes_read(ROW)}
         if id(evaluate) not in listed:          # a per-frame row does not multiply over edit-only axes

@@ -1,32 +1,11 @@
-"""DualNeRF vocabulary of a workflow grid: scenes x edits x methods x seeds x parameter axes -> steps.
+"""The axes of a workflow grid: scenes x edits x methods x seeds x parameter axes (the syntax, for users:
+docs/workflows.md; the generic product, filters and labels: `pipeline.grid`).
 
-The generic product, filters and labels are `pipeline.grid`; this module says what the axes mean:
-
-    scene    `scenes = ["campsite", "my_capture"]`, or "procedural" (every scene in
-             dualnerf.scenes.library at expansion time); a user folder <scenes_dir>/<name>/ wins over a
-             procedural scene of the same name. `scene = "x"` (one scene) still works.
-    edit     `edits = ["snow"]`, "all" (every edit of each scene), or a table per scene
-             (`edits = {campsite = "all", tiny = ["snow"]}`); default: the scene's first edit.
-             `edit = "x"` still works.
-    method   `methods = ["per-frame", "IN2N", "DualNeRF", "DF+SA", ...]`: "per-frame" is the per-frame
-             InstructPix2Pix baseline (stages.perframe), "IN2N" the single-field Instruct-NeRF2NeRF
-             baseline (DF, SA, CCI off), "DualNeRF" all three on, and any "+"-combination of DF, SA, CCI
-             (experiments.methods). The older `variants = [[DF, SA, CCI], ...]` rows are read as methods
-             (labels "baseline", "DF+SA", ...; same keys).
-    seed     `seeds = [0, 1, 2]`: the edit seed of IDU rows, the editor seed of per-frame rows.
-    params   any number of `<stage>.<param>` axes. A LIST value for a parameter whose declared type is a
-             scalar (int, float, str, bool) is an axis, wherever it is written: `[stages.edit]
-             w_max_color = [0.05, 0.1]`, `--set edit.w_max_color=[0.05,0.1]`, or an `[axes]` table
-             (`"edit.blend_rate" = [0.0025, 0.005]`). An `[axes]` entry may set several parameters to the
-             same value: `w_max = {params = ["edit.w_max_density", "edit.w_max_color"], values = [...]}`;
-             `--set w_max=[...]` replaces its values.
-    filters  `include = [{scene = "campsite"}]`, `exclude = [{method = "per-frame", seed = 1}]` over the
-             axis names scene, edit, method, seed and the parameter axes (pipeline.grid semantics).
-
-Every `<stage>.<param>` is checked against the stage's Params dataclass before anything runs, and an axis
-that no cell reads (e.g. an edit parameter in a grid of per-frame rows only) is refused. Each cell gets
-the unedited scene's row ("Original scene") once per distinct (scene, edit, fit and evaluate setting);
-identical steps are one Step object (and one key), so preprocess and fit run once per scene and setting.
+Here: which stage parameters a workflow may set and which it sets itself (MANAGED), the method and seed
+axes, the parameter axes (a LIST value for a parameter whose declared type is a scalar is an axis, in
+`[stages.<stage>]`, `--set` or `[axes]`, where one entry may set several parameters), every
+`<stage>.<param>` checked against the stage's Params before anything runs, and GridBuilder, which makes
+identical invocations one Step (one key), so preprocess and fit run once per scene and setting.
 """
 from __future__ import annotations
 
@@ -85,13 +64,17 @@ def check_param(error, stage: str, param: str, where: str) -> str:
 
 
 def parse_methods(error, path: Path, settings: dict) -> list[Method]:
-    """The method axis: `methods = [...]` names (experiments.methods), distinct."""
+    """The method axis: `methods = [...]` names (experiments.methods), distinct. An empty list (with the
+    unedited rows kept: `original`, the default) runs no edit: the scene's reconstruction only."""
     raw = settings.get("methods")
     if raw is None:
         raise error(f"{path}: [workflow] needs methods, e.g. methods = [\"per-frame\", \"IN2N\", \"DualNeRF\"].")
     raw = [raw] if isinstance(raw, str) else raw
+    if raw == [] and settings.get("original", True):
+        return []
     if not isinstance(raw, list) or not raw or not all(isinstance(m, str) for m in raw):
-        raise error(f"{path}: [workflow] methods must be a non-empty list of method names, got {raw!r}.")
+        raise error(f"{path}: [workflow] methods must be a list of method names (empty only with the unedited "
+                    f"rows, original = true), got {raw!r}.")
     try:
         methods = [Method.parse(name) for name in raw]
     except MethodError as err:

@@ -104,8 +104,9 @@ def load_scene(path: Path, settings: dict, name: str, scenes_dir: Path) -> Scene
     return Scene(name, inputs, origin, spec, ids)
 
 
-def captions(path: Path, settings: dict, scene: Scene, edit_id: str) -> dict:
-    """The edit's instruction and source/target captions: the scene's scene.toml, overridden by [workflow]."""
+def captions(path: Path, settings: dict, scene: Scene, edit_id: str, required: bool = True) -> dict:
+    """The edit's instruction and source/target captions: the scene's scene.toml, overridden by [workflow].
+    Not `required` (no edited rows), missing ones are "": the evaluation then says C_t2i has no captions."""
     found = {"instruction": None, "source_caption": None, "target_caption": None}
     if scene.spec is not None and edit_id in scene.edit_ids and any(e.id == edit_id for e in scene.spec.edits):
         edit = scene.spec.edit(edit_id)
@@ -115,6 +116,8 @@ def captions(path: Path, settings: dict, scene: Scene, edit_id: str) -> dict:
         if key in settings:
             found[key] = settings[key]
     missing = [k for k, v in found.items() if not v]
+    if not required:
+        return {k: v or "" for k, v in found.items()}
     if missing:
         raise WorkflowError(f"{path}: scene '{scene.name}' has no scene.toml edit vocabulary; set "
                             f"{', '.join(missing)} in [workflow] or with --set.")
