@@ -88,3 +88,18 @@ def test_presets_use_methods_and_the_older_syntax_keeps_its_labels_and_keys(tmp_
     assert describe(old) == describe(new)
     assert [c.label for c in old.cells] == ["Original scene", "baseline", "DF", "DF+SA", "CCI", "DF+CCI",
                                             "DF+SA+CCI"]
+
+
+def test_no_methods_is_the_reconstruction_alone_and_shares_the_ablations_steps():
+    from experiments.workflow import WorkflowError, load_workflow
+    from tests.workflow_key_record import ROOT, describe
+
+    wf = load_workflow(ROOT / "workflows" / "reconstruct.toml", ["scenes_dir=/nonexistent"])
+    assert [c.label for c in wf.cells] == ["Original scene"] and wf.cells[0].is_original
+    assert [s.stage for s in wf.steps] == ["scene", "preprocess", "fit", "evaluate"]
+    ablation = load_workflow(ROOT / "workflows" / "ablation.toml", ["scenes_dir=/nonexistent"])
+    assert describe(wf)["cells"][0] == describe(ablation)["cells"][0]       # the same unedited row and keys
+    with pytest.raises(WorkflowError, match="empty only with the unedited rows"):
+        load_workflow(ROOT / "workflows" / "reconstruct.toml", ["scenes_dir=/nonexistent", "original=false"])
+    with pytest.raises(WorkflowError, match="is read by no cell"):
+        load_workflow(ROOT / "workflows" / "reconstruct.toml", ["scenes_dir=/nonexistent", "edit.lr=[0.1,0.2]"])
