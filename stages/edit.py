@@ -279,6 +279,7 @@ def _scene_edit(data_dir: Path, p: EditParams):
 
 
 def build_editor(p: EditParams, data_dir: Path, dataset, train, instruction: str):
+    """The editor of an edit step (also used by benchmarks.bench_edit and profile_edit)."""
     from dualnerf.editors import load_editor
 
     if p.editor == "synthetic" and not p.edit_id:
