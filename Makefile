@@ -32,17 +32,17 @@ test: setup
 	$(MAKE) smoke
 
 smoke: setup
-	$(BIN)/dualnerf run workflows/smoke.toml --reports reports/smoke $(ARGS)
-	$(BIN)/python -m stages.check_smoke reports/smoke
+	$(BIN)/dualnerf run workflows/smoke.toml --out reports/smoke $(ARGS)
+	$(BIN)/python -m experiments.check_smoke reports/smoke
 
 ablation: setup
-	$(BIN)/dualnerf run workflows/ablation.toml --set scene=$(SCENE) --reports reports/$(SCENE) $(ARGS)
+	$(BIN)/dualnerf run workflows/ablation.toml --set scene=$(SCENE) --out reports/$(SCENE) $(ARGS)
 
 bench: setup
 	$(BIN)/python -m benchmarks
 
 lint: setup
-	$(BIN)/ruff check pipeline stages dualnerf tests benchmarks
+	$(BIN)/ruff check pipeline stages dualnerf experiments tests benchmarks
 
 clean-venv:
 	rm -rf $(VENV)

@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> None:
     from dualnerf.rendering import render_view
     from dualnerf.scenes import generate_scene, load_gt_edit, load_scene_spec
     from pipeline.context import StepContext
-    from stages.edit import EditParams, _build_editor, _build_encoder
+    from stages.edit import EditParams, build_editor, build_encoder
     from stages.fit import FitParams, FitStage
 
     torch.set_num_threads(args.threads)
@@ -104,8 +104,8 @@ def main(argv: list[str] | None = None) -> None:
             params = EditParams(dual_field=variant[0], annealing=variant[1], consistency=variant[2],
                                 edit_id="snow", iterations=iterations,
                                 **({} if args.lpips_weight is None else {"lpips_weight": args.lpips_weight}))
-            editor = _build_editor(params, data_dir, dataset, train, spec.instruction)
-            encoder = _build_encoder(params, data_dir, dataset, spec)
+            editor = build_editor(params, data_dir, dataset, train, spec.instruction)
+            encoder = build_encoder(params, data_dir, dataset, spec)
             config = IDUConfig(dual_field=variant[0], annealing=variant[1], consistency=variant[2],
                                iterations=iterations, edit_rate=params.edit_rate, edit_count=params.edit_count,
                                rays_per_batch=params.rays_per_batch, learning_rate=params.lr,

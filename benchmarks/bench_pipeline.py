@@ -139,9 +139,9 @@ def _measure(work: Path, rows: list[tuple[str, str]]) -> None:
 def _measure_grid(work: Path, rows: list[tuple[str, str]]) -> None:
     """A 100-cell workflow grid (sweep_blend: 11 seeds x 3 w_max x 3 lambda + the original row) expanded
     and dry-run (every step keyed, its state looked up) against an empty store; target < 1 s."""
+    from experiments.workflow import load_workflow
     from pipeline.dag import dry_run
     from stages import STAGES
-    from stages.workflow import load_workflow
 
     workflow = Path(__file__).resolve().parents[1] / "workflows" / "sweep_blend.toml"
     overrides = ["scenes_dir=/nonexistent", "methods=[\"DualNeRF\"]", "exclude=[]",

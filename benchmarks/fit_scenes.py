@@ -30,7 +30,7 @@ def _with_upstream(step, into: list) -> list:
 
 def _steps_to_fit(name: str) -> list:
     from dualnerf.scenes.library import BUILDERS
-    from stages.workflow import load_workflow
+    from experiments.workflow import load_workflow
 
     workflow = load_workflow(Path(__file__).parent.parent / "workflows" / "ablation.toml",
                              [f"scene={name}", f"edit={BUILDERS[name][1][0].id}"]

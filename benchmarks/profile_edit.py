@@ -128,14 +128,14 @@ def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Pa
     from dualnerf import patches, rendering, training
     from dualnerf.idu import IterativeDatasetUpdate
     from dualnerf.scenes import load_scene_spec
-    from stages.edit import EditParams, _build_editor, _build_encoder, idu_config
+    from stages.edit import EditParams, build_editor, build_encoder, idu_config
 
     params = EditParams(dual_field=dual_field, annealing=dual_field, consistency=dual_field, edit_id="snow",
                         iterations=args.iterations)
     spec = load_scene_spec(data_dir).edit("snow")
     train = dataset.indices("train")
-    editor = _build_editor(params, data_dir, dataset, train, spec.instruction)
-    encoder = _build_encoder(params, data_dir, dataset, spec)
+    editor = build_editor(params, data_dir, dataset, train, spec.instruction)
+    encoder = build_encoder(params, data_dir, dataset, spec)
     config = idu_config(params)           # the stage's own settings (RGB + LPIPS patch loss, blend schedule)
     idu = IterativeDatasetUpdate(config, static, dataset, editor, spec.instruction, encoder=encoder)
 

@@ -75,7 +75,7 @@ class _ScreenFilter(logging.Filter):
 
 
 def step_logger(job: Job) -> tuple[logging.Logger, list[logging.Handler]]:
-    logger = logging.getLogger(f"dualnerf.step.{job.key[:16]}.{uuid.uuid4().hex[:6]}")
+    logger = logging.getLogger(f"pipeline.step.{job.key[:16]}.{uuid.uuid4().hex[:6]}")
     logger.setLevel(logging.INFO)
     logger.propagate = False
     Path(job.log_path).parent.mkdir(parents=True, exist_ok=True)

@@ -35,7 +35,7 @@ from pipeline.keys import FORMAT_VERSION
 from pipeline.lease import Lease, read_lease
 
 MANIFEST = "manifest.json"
-log = logging.getLogger("dualnerf.store")
+log = logging.getLogger("pipeline.store")
 
 
 class StoreError(UserError):

@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.stage import Resources, Stage, StageContext
@@ -89,9 +89,9 @@ class EditParams:
     edit_count: int = 1                 # views per dataset update (IN2N: 1)
     rays_per_batch: int = 1024          # (paper scale: 4096)
     lr: float = 1e-2                    # f_D's is lr / w_max_color when dual_lr_scale (see dualnerf.idu)
-    dual_lr_scale: bool = True
-    w_max_density: float = 0.1          # eq. 6 upper bounds (paper: 0.1)
-    w_max_color: float = 0.1
+    dual_lr_scale: bool = True          # scale f_D's learning rate by 1 / w_max_color (see lr)
+    w_max_density: float = 0.1          # eq. 6 upper bound of the density blend weight (paper: 0.1)
+    w_max_color: float = 0.1            # eq. 6 upper bound of the colour blend weight (paper: 0.1)
     blend_rate: float = 0.005           # eq. 6 lambda (paper: 0.005)
     T0: float = 1.0                     # eq. 8 initial temperature (paper: 1)
     lpips_weight: float = 0.0           # RGB + this x LPIPS on rendered patches (paper Sec. 4.4, IN2N: 1, as in
@@ -101,8 +101,8 @@ class EditParams:
     patch_share: float = 0.5            # share of each batch as patches (>= 1 patch: all 1024 rays at 32x32)
     update_precision: str = "bf16"      # view-update renders' MLPs: "bf16" (AMX tiles where the CPU has them;
                                         # module docstring) or "fp32"; training, probes and evaluation: fp32
-    seed: int = 0
-    device: str = "cpu"
+    seed: int = 0                       # training, annealing and editor seeds (recorded in the manifest)
+    device: str = "cpu"                 # "cpu" or "cuda"
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
     # Non-semantic (resume is exact from any round). A checkpoint of a campsite dual-field edit takes ~1 s
     # (f_D, Adam's moments, the images: ~160 MB); every 50 rounds (500 iterations, ~1.5 min of editing on
@@ -166,8 +166,8 @@ class EditStage(TorchNumerics, Stage):
                                  f"{data_dir / 'scene.toml'} (edit_id '{p.edit_id}'); use cci_text 'instruction'.")
         cci_text = instruction if p.cci_text == "instruction" else spec.target_caption
         train = dataset.indices("train")
-        editor = _build_editor(p, data_dir, dataset, train, instruction)
-        encoder = _build_encoder(p, data_dir, dataset, spec)
+        editor = build_editor(p, data_dir, dataset, train, instruction)
+        encoder = build_encoder(p, data_dir, dataset, spec)
         config = idu_config(p)
         probe = None
         if p.convergence_every > 0:
@@ -284,7 +284,8 @@ def _scene_edit(data_dir: Path, p: EditParams):
     return spec.edit(p.edit_id)
 
 
-def _build_editor(p: EditParams, data_dir: Path, dataset, train, instruction: str):
+def build_editor(p: EditParams, data_dir: Path, dataset, train, instruction: str):
+    """The editor of an edit step (also used by benchmarks.bench_edit and profile_edit)."""
     from dualnerf.editors import load_editor
 
     if p.editor == "synthetic" and not p.edit_id:
@@ -295,7 +296,7 @@ def _build_editor(p: EditParams, data_dir: Path, dataset, train, instruction: st
                        originals=dataset.images[train])
 
 
-def _build_encoder(p: EditParams, data_dir: Path, dataset, spec):
+def build_encoder(p: EditParams, data_dir: Path, dataset, spec):
     """The CCI encoder. The proxy needs the scene's ground-truth edit to define its captions; without it,
     CCI off runs without scores and CCI on is an error."""
     from dualnerf.encoders import load_encoder
@@ -314,13 +315,11 @@ def _build_encoder(p: EditParams, data_dir: Path, dataset, spec):
 
 
 def _write_images(folder: Path, names, images) -> None:
-    import cv2
+    from stages.images import write_png
 
     folder.mkdir(parents=True, exist_ok=True)
     for name, image in zip(names, images):
-        path = folder / f"{Path(name).stem}.png"
-        if not cv2.imwrite(str(path), image[..., ::-1]):
-            raise OSError(f"could not write {path}")
+        write_png(folder / f"{Path(name).stem}.png", image)
 
 
 def plot_curves(curves: dict, path: Path) -> None:

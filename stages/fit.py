@@ -33,28 +33,28 @@ class FitInputError(ValueError):
 
 @dataclass(frozen=True)
 class FitParams:
-    iterations: int = 2000
-    rays_per_batch: int = 1024
-    learning_rate: float = 1e-2
+    iterations: int = 2000              # training steps
+    rays_per_batch: int = 1024          # rays per training step
+    learning_rate: float = 1e-2         # Adam's initial learning rate
     lr_final_ratio: float = 0.1         # exponential decay to learning_rate * lr_final_ratio at the last step
-    seed: int = 0
+    seed: int = 0                       # initialisation and ray sampling
     device: str = "cpu"                 # "cpu" or "cuda"
-    checkpoint_every: int = 250
+    checkpoint_every: int = 250         # steps between in-stage checkpoints (where a killed run resumes)
     eval_every: int = 250               # held-out PSNR for the curve (on up to `curve_views` views)
-    curve_views: int = 2
+    curve_views: int = 2                # held-out views rendered per curve point
     grid_levels: int = 4                # dense feature grids from 16^3, doubling up to grid_max_resolution
-    grid_max_resolution: int = 128
-    grid_features: int = 2
+    grid_max_resolution: int = 128      # finest dense grid level (cells per side)
+    grid_features: int = 2              # features per grid and plane entry
     plane_levels: int = 3               # xy/xz/yz feature planes, halving from plane_max_resolution (0: none)
-    plane_max_resolution: int = 1024
-    hidden_width: int = 64
+    plane_max_resolution: int = 1024    # finest feature plane (texels per side)
+    hidden_width: int = 64              # width of the field's MLPs
     samples_per_ray: int = 48           # field evaluations per training ray (placed by the occupancy-grid proposal)
     render_samples_per_ray: int = 96    # per ray in full-image renders of this model (see FieldConfig)
-    proposal_samples: int = 256
+    proposal_samples: int = 256         # occupancy-grid look-ups per ray for the sample proposal
     background: str = "learned"         # learned | white | black
     lpips_weight: float = 0.0           # > 0: RGB + this x LPIPS on rendered patches (measured: see README)
     lpips_net: str = "alex"             # LPIPS backbone: "alex" or "vgg"
-    patch_size: int = 32
+    patch_size: int = 32                # LPIPS patch side (pixels)
     patch_share: float = 0.5            # share of each batch drawn as patches when lpips_weight > 0
     num_threads: int = 0                # non-semantic; 0: the threads the engine grants
 
@@ -224,11 +224,11 @@ class _FitRun:
         self.publish()
 
     def publish(self) -> None:
-        import cv2
         import numpy as np
         from skimage.metrics import structural_similarity
 
         from dualnerf.model import save_model
+        from stages.images import write_png
 
         out = Path(self.ctx.out_dir)
         (out / "heldout").mkdir(parents=True, exist_ok=True)
@@ -241,7 +241,7 @@ class _FitRun:
             per_view[name] = {"psnr": -10.0 * math.log10(max(mse, 1e-12)),
                               "ssim": float(structural_similarity(truth, image, channel_axis=-1, data_range=1.0))}
             png = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
-            cv2.imwrite(str(out / "heldout" / f"{Path(name).stem}.png"), png[..., ::-1])
+            write_png(out / "heldout" / f"{Path(name).stem}.png", png)
         metrics = {
             "split": self.eval_split,
             "psnr_mean": float(np.mean([v["psnr"] for v in per_view.values()])),

@@ -27,14 +27,17 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.stage import Resources, Stage, StageContext
+from stages import layout
+from stages.evaluation_io import PerFrameError, evaluation_cameras
+from stages.images import write_png
 from stages.numerics import NumpyNumerics
 
-KINDS = ("original", "gt_edit", "gt_mask")
+KINDS = layout.GROUND_TRUTH_KINDS
 
 
 @dataclass(frozen=True)
 class GroundTruthViewsParams:
-    edit_id: str = ""
+    edit_id: str = ""              # the scene edit whose ground truth is rendered
     scene_supersample: int = 0     # the procedural scene's supersample (0: its default), to re-render it exactly
 
 
@@ -52,7 +55,6 @@ class GroundTruthViewsStage(NumpyNumerics, Stage):
         from dualnerf.dataset import load_dataset
         from dualnerf.scenes.spec import SceneSpecError
         from dualnerf.scenes.views import SceneViewRenderer
-        from stages.perframe import PerFrameError, evaluation_cameras, write_png
 
         p = ctx.params
         data_dir = Path(ctx.inputs["dataset"])
@@ -82,7 +84,7 @@ class GroundTruthViewsStage(NumpyNumerics, Stage):
                     write_png(partial, image)
                     os.replace(partial, final)
                 bar.update()
-        for group in ("frames", "views"):
+        for group in (layout.FRAMES, layout.VIEWS):
             shutil.copytree(work / group, ctx.out_dir / group)
         similarity = renderer.to_scene
         (ctx.out_dir / "gtviews.json").write_text(json.dumps({
@@ -92,19 +94,3 @@ class GroundTruthViewsStage(NumpyNumerics, Stage):
             "images": len(jobs)}, indent=1))
         ctx.record(scene=renderer.spec.name, edit_id=p.edit_id, randomness="none: deterministic ray caster",
                    alignment_rotation_residual_degrees=similarity.rotation_residual_degrees)
-
-
-def read_ground_truth(folder: Path, group: str, name: str):
-    """(original, gt_edit, mask) of one evaluation image from a gtviews result."""
-    import cv2
-
-    images = []
-    for kind in KINDS:
-        image = cv2.imread(str(Path(folder) / group / kind / name), cv2.IMREAD_COLOR)
-        if image is None:
-            from stages.perframe import PerFrameError
-
-            raise PerFrameError(f"{Path(folder) / group / kind / name} is missing: the gtviews result does not "
-                                f"match this evaluation's cameras; rerun the gtviews step.")
-        images.append(np.ascontiguousarray(image[..., ::-1]))
-    return images[0], images[1], images[2][..., 0] > 127

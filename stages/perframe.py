@@ -23,21 +23,19 @@ editor's generator is seeded by (seed, k); recorded in the manifest.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from pipeline.stage import Resources, Stage, StageContext
+from stages import layout
+from stages.checkpoints import resume_images, save_images
+from stages.evaluation_io import PerFrameError, evaluation_cameras, read_ground_truth
+from stages.images import write_png
 from stages.numerics import TorchNumerics, semantic_values, use_step_threads
 
 CHECKPOINT_EVERY = 16          # edited images between in-stage checkpoints
 
-
-class PerFrameError(ValueError):
-    """A per-frame input or parameter that cannot be used; the message says what to change."""
-
-    user_error = True
+__all__ = ["PerFrameError", "PerFrameParams", "PerFrameStage"]
 
 
 @dataclass(frozen=True)
@@ -46,8 +44,8 @@ class PerFrameParams:
     edit_id: str = ""              # the scene edit (the emulator's ground truth)
     editor: str = "synthetic"      # "synthetic" (InstructPix2Pix EMULATOR, a simulator) or "ip2p"
     editor_model: str = ""         # ip2p: local diffusers folder or hub id
-    seed: int = 0
-    device: str = "cpu"
+    seed: int = 0                  # editor seed: image k is edited with (seed, k)
+    device: str = "cpu"            # "cpu" or "cuda" (the editor's)
     num_threads: int = 0           # non-semantic; 0: the threads the engine grants
 
 
@@ -61,8 +59,6 @@ class PerFrameStage(TorchNumerics, Stage):
     packages = ("torch", "numpy", "opencv-contrib-python-headless", "diffusers", "transformers")
 
     def run(self, ctx: StageContext) -> None:
-        import torch
-
         from dualnerf.dataset import load_dataset
         from dualnerf.editors import EDITOR_KINDS, to_float_image, to_uint8_image
 
@@ -81,7 +77,8 @@ class PerFrameStage(TorchNumerics, Stage):
         editor, ground_truth = _editor(p, data_dir, instruction, ctx.inputs.get("gtviews"))
         jobs = evaluation_cameras(original_dir, dataset)      # (group, name, c2w, (w, h), f_S render)
 
-        done = _resume(ctx, len(jobs))
+        images, details = resume_images(ctx, len(jobs), with_details=True, restart="editing from the start")
+        done = list(zip(images, details))
         if done:
             ctx.log.info("resuming after %d of %d edited images (checkpoint)", len(done), len(jobs))
         with ctx.progress(len(jobs), f"per-frame {p.editor} edits", initial=len(done)) as bar:
@@ -97,15 +94,15 @@ class PerFrameStage(TorchNumerics, Stage):
                 done.append((edited, dict(editor.last_details)))
                 bar.update()
                 if len(done) % CHECKPOINT_EVERY == 0 and len(done) < len(jobs):
-                    _checkpoint(ctx, done)
+                    save_images(ctx, [image for image, _ in done], [detail for _, detail in done])
 
         out = ctx.out_dir
         details = []
         for (group, name, *_), (edited, detail) in zip(jobs, done):
-            write_png(out / group / "edited" / name, edited)
+            write_png(layout.image_path(out, group, layout.EDITED, name), edited)
             details.append({"group": group, "name": name, "editor_step": len(details), **detail})
         identity = editor.identity
-        (out / "edit.json").write_text(json.dumps({
+        (out / layout.EDIT_RECORD).write_text(json.dumps({
             "method": "per-frame", "instruction": instruction, "edit_id": p.edit_id, "editor": identity,
             "editor_is_simulator": bool(identity.get("is_simulator")), "params": semantic_values(p, self.nonsemantic_params),
             "images": details}, indent=1))
@@ -163,7 +160,6 @@ def _editor(p: PerFrameParams, data_dir: Path, instruction: str, gtviews):
                                    device=p.device)), None
     from dualnerf.editors.emulator import EmulatorConfig
     from dualnerf.scenes.spec import load_scene_spec
-    from stages.gtviews import read_ground_truth
 
     if not p.edit_id:
         raise PerFrameError("perframe: editor 'synthetic' (the InstructPix2Pix emulator) needs edit_id, the "
@@ -185,69 +181,3 @@ def _scene_instruction(data_dir: Path, edit_id: str) -> str:
     from dualnerf.scenes.spec import load_scene_spec
 
     return load_scene_spec(data_dir).edit(edit_id).instruction
-
-
-def evaluation_cameras(original_dir: Path, dataset) -> list[tuple]:
-    """Every image the evaluate stage scores: the path frames, then the fixed views, with their cameras
-    (dataset frame), sizes and f_S renders, all read from the unedited evaluation."""
-    import cv2
-
-    try:
-        path = json.loads((original_dir / "camera_path.json").read_text())
-        metrics = json.loads((original_dir / "metrics.json").read_text())
-    except (FileNotFoundError, json.JSONDecodeError) as err:
-        raise PerFrameError(f"{original_dir} is not an evaluate result ({err}); the 'original' input must be "
-                            f"the unedited scene's evaluation.") from None
-    if metrics.get("edited"):
-        raise PerFrameError(f"{original_dir} evaluates an edited model; 'original' must be the unedited scene.")
-
-    def read(file: Path):
-        image = cv2.imread(str(file), cv2.IMREAD_COLOR)
-        if image is None:
-            raise PerFrameError(f"{file} is missing or unreadable; rerun the unedited-scene evaluation.")
-        return np.ascontiguousarray(image[..., ::-1])
-
-    size = (int(path["width"]), int(path["height"]))
-    jobs = [("frames", f"{n:04d}.png", np.asarray(c2w), size, read(original_dir / "frames" / "original" / f"{n:04d}.png"))
-            for n, c2w in enumerate(path["c2w"])]
-    index = {name: i for i, name in enumerate(dataset.names)}
-    for name in metrics["views"]["names"]:
-        if name not in index:
-            raise PerFrameError(f"view {name} of {original_dir} is not in the dataset; 'original' must come "
-                                f"from the same dataset.")
-        jobs.append(("views", name, dataset.c2w[index[name]], (dataset.width, dataset.height),
-                     read(original_dir / "views" / "original" / name)))
-    return jobs
-
-
-def write_png(path: Path, image) -> None:
-    import cv2
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), np.ascontiguousarray(image[..., ::-1])):
-        raise OSError(f"could not write {path}")
-
-
-def _checkpoint(ctx: StageContext, done: list) -> None:
-    with ctx.checkpoint(len(done)) as folder:
-        for k, (image, detail) in enumerate(done):
-            write_png(folder / f"{k:05d}.png", image)
-        (folder / "details.json").write_text(json.dumps([d for _, d in done]))
-
-
-def _resume(ctx: StageContext, total: int) -> list:
-    import cv2
-
-    latest = ctx.latest_checkpoint()
-    if latest is None:
-        return []
-    step, folder = latest
-    details = json.loads((folder / "details.json").read_text())
-    done = []
-    for k in range(min(step, total)):
-        image = cv2.imread(str(folder / f"{k:05d}.png"), cv2.IMREAD_COLOR)
-        if image is None:
-            ctx.log.warning("checkpoint %s is incomplete; editing from the start", folder)
-            return []
-        done.append((np.ascontiguousarray(image[..., ::-1]), details[k]))
-    return done

@@ -13,12 +13,12 @@ from stages.numerics import NumpyNumerics
 
 @dataclass(frozen=True)
 class SceneParams:
-    name: str = "tiny"
-    seed: int = 0
+    name: str = "tiny"      # the procedural scene (`dualnerf scene list`)
+    seed: int = 0           # texture seed
     width: int = 0          # 0: the scene's default
-    height: int = 0
-    n_views: int = 0
-    supersample: int = 0
+    height: int = 0         # 0: the scene's default
+    n_views: int = 0        # cameras on the scene's arc (0: the scene's default)
+    supersample: int = 0    # samples per pixel side, for anti-aliasing (0: the scene's default)
     workers: int = 0        # non-semantic: render processes (0: the threads the engine grants)
 
 

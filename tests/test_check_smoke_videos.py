@@ -2,7 +2,7 @@
 import numpy as np
 
 from dualnerf.video import write_mp4
-from stages.check_smoke import _video_problems
+from experiments.check_smoke import _video_problems
 
 
 def test_smoke_check_names_videos_browsers_cannot_play(tmp_path):

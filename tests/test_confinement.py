@@ -164,7 +164,7 @@ def _victim(tmp_path) -> Path:
 @pytest.mark.parametrize("override", ["scene=../elsewhere/victim", "scene=/etc", "scene=a b",
                                       "name=../../up", "edit=../../x"])
 def test_workflow_names_substituted_into_folders_must_be_plain(tmp_path, override):
-    from stages.workflow import load_workflow
+    from experiments.workflow import load_workflow
 
     _victim(tmp_path)
     with pytest.raises(PathError, match=r"ablation\.toml: \[workflow\] .* is not a plain name.*letters, digits"):
@@ -172,7 +172,7 @@ def test_workflow_names_substituted_into_folders_must_be_plain(tmp_path, overrid
 
 
 def test_run_command_refuses_a_traversing_scene_before_writing_anything(tmp_path, monkeypatch, capsys):
-    from stages.cli import main
+    from experiments.cli import main
 
     _victim(tmp_path)
     monkeypatch.chdir(tmp_path)
@@ -212,7 +212,7 @@ def test_a_dataset_naming_files_outside_itself_is_refused(tiny_dataset, tmp_path
 
 
 def test_report_folder_stays_inside_the_folder_its_template_names(tmp_path, monkeypatch):
-    from stages.workflow import load_workflow
+    from experiments.workflow import load_workflow
 
     monkeypatch.chdir(tmp_path)
     wf = load_workflow(ABLATION, ["scenes_dir=/nonexistent", "report_dir=out/reports/{scene}"])

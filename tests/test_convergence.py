@@ -7,7 +7,8 @@ import torch
 
 from dualnerf.cameras import pixel_rays
 from dualnerf.convergence import ConvergenceProbe, downsample, masked_psnr, probe_for_scene_edit
-from stages.report_convergence import remaining_change
+from experiments.methods import Method
+from experiments.report.convergence import remaining_change
 from tests.test_edit_idu import SNOW, make_idu, small  # noqa: F401  (fixture)
 
 
@@ -86,8 +87,8 @@ def test_remaining_change_recovers_a_saturating_curve_and_flags_a_straight_line(
 def test_report_draws_one_convergence_panel_per_row_with_probe_data(tmp_path):
     import json
 
-    from stages.report import ReportRow
-    from stages.report_convergence import write_convergence
+    from experiments.report import ReportRow
+    from experiments.report.convergence import write_convergence
 
     rows = []
     for k, label in enumerate(("baseline", "DF+SA+CCI", "Original")):
@@ -96,7 +97,7 @@ def test_report_draws_one_convergence_panel_per_row_with_probe_data(tmp_path):
         conv = None if label == "Original" else {"iteration": [0, 100, 200], "psnr_in": [12.0, 18.0, 19.0],
                                                  "psnr_out": [30.0, 29.5, 29.4], "views": [1, 2], "scale": 0.5}
         (edit_dir / "curves.json").write_text(json.dumps({"iteration": [], "convergence": conv}))
-        rows.append(ReportRow(label, True, True, True, 0, tmp_path, edit_dir))
+        rows.append(ReportRow(Method.idu(True, True, True, label=label), 0, tmp_path, edit_dir))
 
     (tmp_path / "out").mkdir(exist_ok=True)
     assert write_convergence(rows, tmp_path / "out") == ["curves/convergence.png"]
@@ -108,7 +109,7 @@ def test_convergence_summary_and_page_table(tmp_path):
     import json
     from types import SimpleNamespace
 
-    from stages.report_convergence import convergence_html, convergence_summary
+    from experiments.report.convergence import convergence_html, convergence_summary
 
     it = list(range(0, 2001, 100))
     rows = []

@@ -24,7 +24,7 @@ from pipeline.store import Store
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# A runner like `dualnerf run`'s (stages.cli.main): run_steps inside terminate_as_interrupt, the CLI's
+# A runner like `dualnerf run`'s (experiments.cli.main): run_steps inside terminate_as_interrupt, the CLI's
 # exit statuses and messages.
 DRIVER = """
 import json, sys

@@ -72,7 +72,7 @@ class Place:
 
     def command(self, *extra: str, dry_run: bool = False, executor: str = "process") -> list[str]:
         sets = [arg for item in FAST for arg in ("--set", item)]
-        return [sys.executable, "-m", "stages.cli", "--cache", str(self.cache), "--runs", str(self.runs), "--quiet",
+        return [sys.executable, "-m", "experiments.cli", "--cache", str(self.cache), "--runs", str(self.runs), "--quiet",
                 "run", WORKFLOW, "--reports", str(self.reports), "--executor", executor, *sets, *extra,
                 *(["--dry-run"] if dry_run else [])]
 

@@ -139,7 +139,7 @@ def test_corrupt_or_missing_files_are_clear_errors(exported, tmp_path):
 
 
 def test_export_command_through_the_cli(tmp_path, capsys):
-    from stages.cli import main
+    from experiments.cli import main
 
     build_tiny_clip_source(tmp_path / "hf", seed=1)
     assert main(["models", "export-clip", "--from", str(tmp_path / "hf"), "--out", str(tmp_path / "m"),

@@ -43,7 +43,7 @@ def make_orphans(store: Store) -> tuple[Path, Path, Path, object]:
 
 
 def test_cache_verify_lists_orphaned_temp_folders(tmp_path, capsys):
-    from stages.cli import main
+    from experiments.cli import main
 
     store = Store(tmp_path / "cache")
     killed, dead, live, lease = make_orphans(store)
@@ -158,7 +158,7 @@ def test_group_sigterm_during_sfm_stops_cleanly_without_glog_stack_dump(tiny_sce
 
 
 def test_a_failed_run_ends_with_the_first_error_and_its_log(tiny_scene, tmp_path, monkeypatch, capsys):
-    from stages.cli import main
+    from experiments.cli import main
 
     scene = tmp_path / "scenes" / "broken"
     (scene / "images").mkdir(parents=True)

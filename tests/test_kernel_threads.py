@@ -123,7 +123,7 @@ def test_sampler_packing_and_compositing(monkeypatch):
                                   jitter, kernels.vector_path())
 
     t, delta, mask = same_everywhere(sample, monkeypatch)
-    x, flat_index, ray, starts = same_everywhere(lambda: module.occupied_samples(origins, dirs, t, mask), monkeypatch)
+    x, flat_index, _, starts = same_everywhere(lambda: module.occupied_samples(origins, dirs, t, mask), monkeypatch)
     h_sigma = torch.randn(x.shape[0], generator=g) * 3
     h_color = torch.randn(x.shape[0], 3, generator=g)
     background = torch.rand(n, 3, generator=g)

@@ -10,14 +10,14 @@ from pathlib import Path
 
 import pytest
 
+from experiments import cli
+from experiments.commands.status import print_status
 from pipeline.dag import Step, compute_keys
 from pipeline.errors import UserError
 from pipeline.executors import SerialExecutor
 from pipeline.runner import run_steps
 from pipeline.status import workflow_status
 from pipeline.store import Store
-from stages import cli
-from stages.commands.status import print_status
 from tests.pipeline_stages import REGISTRY
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -25,7 +25,7 @@ HEAVY = ("torch", "ray", "numpy", "tqdm", "diffusers", "transformers", "cv2", "o
 
 
 def test_help_lists_commands_without_heavy_imports():
-    probe = ("import sys, stages.cli as c\n"
+    probe = ("import sys, experiments.cli as c\n"
              "text = c.build_parser().format_help()\n"
              f"print(text); print('HEAVY', sorted(m for m in {HEAVY!r} if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", probe], check=False, capture_output=True, text=True, cwd=ROOT,
@@ -36,7 +36,7 @@ def test_help_lists_commands_without_heavy_imports():
 
 
 def fake_command(monkeypatch, name: str, handler) -> None:
-    module = types.ModuleType(f"stages.commands.{name}")
+    module = types.ModuleType(f"experiments.commands.{name}")
 
     def register(subparsers):
         subparsers.add_parser(name).set_defaults(handler=handler)
@@ -66,7 +66,7 @@ def test_only_the_missing_command_module_itself_is_skipped(monkeypatch):
     real_import = cli.importlib.import_module
 
     def import_module(name):
-        if name == "stages.commands.status":
+        if name == "experiments.commands.status":
             raise ModuleNotFoundError("No module named 'yaml'", name="yaml")   # a broken command module
         return real_import(name)
 
@@ -77,7 +77,7 @@ def test_only_the_missing_command_module_itself_is_skipped(monkeypatch):
 
 def test_cli_user_error_has_no_traceback_and_cache_env(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT), DUALNERF_CACHE=str(tmp_path / "envcache"))
-    out = subprocess.run([sys.executable, "-m", "stages.cli", "cache", "pin", "abc"], check=False, capture_output=True,
+    out = subprocess.run([sys.executable, "-m", "experiments.cli", "cache", "pin", "abc"], check=False, capture_output=True,
                          text=True, env=env, cwd=tmp_path)
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "abc" in out.stderr and str(tmp_path / "envcache") in out.stderr
@@ -86,7 +86,7 @@ def test_cli_user_error_has_no_traceback_and_cache_env(tmp_path):
 def test_bad_workflow_toml_names_file_and_line(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text('[workflow]\nname = "x"\nseeds = [0, 1]]\nedit = "snow"\n')
-    out = subprocess.run([sys.executable, "-m", "stages.cli", "--cache", str(tmp_path / "c"), "status", str(bad)],
+    out = subprocess.run([sys.executable, "-m", "experiments.cli", "--cache", str(tmp_path / "c"), "status", str(bad)],
                          check=False, capture_output=True, text=True, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert str(bad) in out.stderr and "line 3" in out.stderr

@@ -68,7 +68,7 @@ def test_corrupted_output_is_quarantined_and_recomputed(tmp_path, caplog):
     data[0] ^= 0x01                                                   # flip one bit, same size
     victim.write_bytes(bytes(data))
     assert any("content changed" in p for p in store.problems(path.name))
-    with caplog.at_level(logging.WARNING, logger="dualnerf.store"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.store"):
         again = run([a], store, tmp_path / "runs" / "r2")
     assert again.status[a] == "done" and executions(trace) == 2      # recomputed, not reused
     assert "steps.txt" in caplog.text and "damaged" in caplog.text   # the warning names the file
@@ -153,7 +153,7 @@ def test_gc_keeps_reachable_and_pinned_and_verify_reports_damage(tmp_path):
     (runs / "gone" / "run.json").unlink()                   # that run record is deleted
     store.pin(r2.results[pinned].name)                       # ... but one result is pinned
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    cli = [sys.executable, "-m", "stages.cli", "--cache", str(store.root), "--runs", str(runs)]
+    cli = [sys.executable, "-m", "experiments.cli", "--cache", str(store.root), "--runs", str(runs)]
     out = subprocess.run(cli + ["cache", "gc"], check=False, capture_output=True, text=True, env=env, cwd=tmp_path)
     assert out.returncode == 0, out.stderr
     remaining = {k for k, _ in store.entries()}

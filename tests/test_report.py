@@ -10,7 +10,8 @@ import pytest
 
 from dualnerf import metrics as M
 from dualnerf.video import write_mp4
-from stages import report as R
+from experiments import report as R
+from experiments.methods import Method
 
 VIEWS = ["view_001.png", "view_005.png", "view_009.png"]
 
@@ -70,7 +71,7 @@ def grid(tmp_path):
     rows = []
     original = {"clip_text_image_direction": 0.0, "clip_direction_consistency": 1.0,
                 "ssim_edited_vs_original": 1.0, "gt_psnr_edit": 12.0, "gt_psnr_background": float("inf")}
-    rows.append(R.ReportRow("original", None, None, None, None, make_evaluate(tmp_path / "e_orig", original,
+    rows.append(R.ReportRow(Method.original("original"), None, make_evaluate(tmp_path / "e_orig", original,
                                                                            (90, 140, 60), editor=None)))
     table = {  # (DF, SA, CCI) -> per-seed C_t2i, C_dir, SSIM, PSNR_gt, PSNR_bg
         ("baseline", False, False, False): [(0.10, 0.93, 0.70, 18.0, 25.0), (0.14, 0.95, 0.72, 19.0, 26.0)],
@@ -82,7 +83,7 @@ def grid(tmp_path):
                       "ssim_edited_vs_original": ssim, "gt_psnr_edit": psnr_gt, "gt_psnr_background": psnr_bg}
             ev = make_evaluate(tmp_path / f"e_{label}_{seed}", values, (230, 230, 240 - 40 * seed))
             ed = make_edit(tmp_path / f"x_{label}_{seed}", 1.0 + seed + df)
-            rows.append(R.ReportRow(label, df, sa, cci, seed, ev, ed))
+            rows.append(R.ReportRow(Method.idu(df, sa, cci, label=label), seed, ev, ed))
     return rows, table
 
 
@@ -156,7 +157,7 @@ def test_lower_is_better_column_marks_the_minimum(grid, tmp_path, monkeypatch):
     rows, _ = grid
     info = M.METRICS["gt_psnr_edit"]
     monkeypatch.setitem(M.METRICS, "gt_psnr_edit", M.MetricInfo(info.symbol, False, False, info.summary))
-    monkeypatch.setattr(R, "METRICS", M.METRICS)
+    monkeypatch.setattr(R.tables, "METRICS", M.METRICS)
     R.build_report(rows, tmp_path / "r", title_info={})
     doc = json.loads((tmp_path / "r" / "table.json").read_text())
     assert [r["metrics"]["gt_psnr_edit"]["best"] for r in doc["rows"]] == [True, False, False]
@@ -171,7 +172,7 @@ def test_grid_rows_are_original_gt_and_variants(grid, tmp_path):
 
 
 def test_missing_metrics_is_a_clear_error(tmp_path):
-    row = R.ReportRow("x", True, True, True, 0, tmp_path / "nowhere")
+    row = R.ReportRow(Method.idu(True, True, True, label="x"), 0, tmp_path / "nowhere")
     with pytest.raises(R.ReportError, match="metrics.json is missing"):
         R.build_report([row], tmp_path / "r", title_info={})
     with pytest.raises(R.ReportError, match="nothing to report"):
@@ -180,8 +181,8 @@ def test_missing_metrics_is_a_clear_error(tmp_path):
 
 def test_mixed_encoders_are_refused(tmp_path):
     values = {"clip_text_image_direction": 0.1}
-    rows = [R.ReportRow("a", True, True, True, 0, make_evaluate(tmp_path / "a", values, (1, 2, 3))),
-            R.ReportRow("b", False, False, False, 0,
+    rows = [R.ReportRow(Method.idu(True, True, True, label="a"), 0, make_evaluate(tmp_path / "a", values, (1, 2, 3))),
+            R.ReportRow(Method.idu(False, False, False, label="b"), 0,
                         make_evaluate(tmp_path / "b", values, (1, 2, 3), encoder="clip:ViT-B/32@abc"))]
     with pytest.raises(R.ReportError, match="mix encoders"):
         R.build_report(rows, tmp_path / "r", title_info={})
@@ -189,15 +190,15 @@ def test_mixed_encoders_are_refused(tmp_path):
 
 def test_lpips_columns_name_the_backbone_and_refuse_mixing(tmp_path):
     values = {"ssim_edited_vs_original": 0.8, "lpips_edited_vs_original": 0.2, "gt_lpips_edit": 0.3}
-    rows = [R.ReportRow("original", None, None, None, None,
+    rows = [R.ReportRow(Method.original("original"), None,
                         make_evaluate(tmp_path / "o", {**values, "lpips_edited_vs_original": 0.0}, (1, 2, 3),
                                       editor=None)),
-            R.ReportRow("a", True, True, True, 0, make_evaluate(tmp_path / "a", values, (1, 2, 3)))]
+            R.ReportRow(Method.idu(True, True, True, label="a"), 0, make_evaluate(tmp_path / "a", values, (1, 2, 3)))]
     R.build_report(rows, tmp_path / "r", title_info={})
     table = (tmp_path / "r" / "table.md").read_text()
     assert "LPIPS ↓ [lpips-v0.1:alex]" in table and "LPIPS_gt ↓ [lpips-v0.1:alex]" in table
     assert "lpips-v0.1:alex (pretrained" in (tmp_path / "r" / "index.html").read_text()
-    rows.append(R.ReportRow("b", False, False, False, 0,
+    rows.append(R.ReportRow(Method.idu(False, False, False, label="b"), 0,
                             make_evaluate(tmp_path / "b", values, (1, 2, 3), lpips="lpips-v0.1:vgg")))
     with pytest.raises(R.ReportError, match="mix LPIPS backbones"):
         R.build_report(rows, tmp_path / "r2", title_info={})

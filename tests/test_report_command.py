@@ -6,12 +6,13 @@ from pathlib import Path
 
 import pytest
 
+from experiments.commands.report import report_workflow, workflow_rows
+from experiments.methods import ORIGINAL, Method
+from experiments.report import ReportError
+from experiments.workflow import Cell, Workflow
 from pipeline.dag import Step, compute_keys
 from pipeline.stage import Stage
 from pipeline.store import Store
-from stages.commands.report import report_workflow, workflow_rows
-from stages.report import ReportError
-from stages.workflow import Cell, Variant, Workflow
 from tests.test_report import make_edit, make_evaluate
 
 REGISTRY = {"edit": "tests.test_report_command:StandInEdit",
@@ -62,12 +63,12 @@ def setup(tmp_path, monkeypatch):
     monkeypatch.setattr("stages.STAGES", REGISTRY)
     store = Store(tmp_path / "cache")
     original = Step("evaluate", {"variant": "original"}, label="evaluate[original]")
-    cells = [Cell("Original scene", original)]
+    cells = [Cell(ORIGINAL, original)]
     values = {"baseline": 0.1, "DF+SA+CCI": 0.2}
     for label, flag in (("baseline", False), ("DF+SA+CCI", True)):
         edit = Step("edit", {"variant": label, "seed": 0}, label=f"edit[{label}]")
         evaluate = Step("evaluate", {"variant": label}, {"edit": edit}, label=f"evaluate[{label}]")
-        cells.append(Cell(label, evaluate, Variant(flag, flag, flag), 0, edit))
+        cells.append(Cell(Method.idu(flag, flag, flag, label=label), evaluate, 0, edit))
     steps = [original] + [s for c in cells[1:] for s in (c.edit, c.evaluate)]
     keys = compute_keys(steps, registry=REGISTRY, store=store)
     _publish(store, keys[original].key,
@@ -87,8 +88,8 @@ def test_rows_and_report_from_the_store(setup, tmp_path):
                  lambda f, v=values[cell.label]: make_evaluate(f, {"clip_text_image_direction": v}, (200, 200, 200)))
     rows = workflow_rows(workflow, store)
     assert [r.label for r in rows] == ["Original scene", "baseline", "DF+SA+CCI"]
-    assert rows[0].dual_field is None and rows[0].edit_dir is None
-    assert rows[2].dual_field is True and rows[1].consistency is False
+    assert rows[0].method.is_original and rows[0].method.flags is None and rows[0].edit_dir is None
+    assert rows[2].method.dual_field is True and rows[1].method.consistency is False
     assert rows[1].evaluate_dir == store.object_path(keys[workflow.cells[1].evaluate].key)
     assert rows[1].edit_dir == store.object_path(keys[workflow.cells[1].edit].key)
     index = report_workflow(workflow, store)
@@ -116,7 +117,7 @@ def test_rows_carry_scene_edit_method_seed_and_axis_values(setup):
         _publish(store, keys[cell.evaluate].key,
                  lambda f, v=values[cell.label]: make_evaluate(f, {"clip_text_image_direction": v}, (200, 200, 200)))
     workflow.cells = [dataclasses.replace(c, scene="tiny", edit_id="snow",
-                                          params=() if c.variant is None else (("w_max", 0.3),))
+                                          params=() if c.is_original else (("w_max", 0.3),))
                       for c in workflow.cells]
     rows = workflow_rows(workflow, store)
     assert [(r.scene, r.edit, r.label, r.seed, r.params) for r in rows] == [

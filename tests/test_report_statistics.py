@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from stages import report as R
+from experiments import report as R
+from experiments.methods import Method
 from tests.test_report import make_evaluate
 from tests.test_report_command import setup  # noqa: F401  (fixture)
 
@@ -31,7 +32,7 @@ def _grid(tmp_path, *, shift=0.05, seeds=(0, 1, 2), noise=(0.0, 0.02, -0.01)):
                 label = "sweep" if name.startswith("sweep") else name
                 folder = make_evaluate(tmp_path / f"{name}_{scene}_{seed}",
                                        {METRIC: value, "gt_psnr_edit": 20.0 + value}, (200, 200, 200))
-                rows.append(R.ReportRow(label, label != "baseline", False, False, seed, folder,
+                rows.append(R.ReportRow(Method.idu(label != "baseline", False, False, label=label), seed, folder,
                                         scene=scene, edit="snow", params=params))
     return rows
 
@@ -146,9 +147,9 @@ def test_a_repeated_unit_is_a_clear_error(tmp_path):
 
 def test_infinite_values_have_no_interval(tmp_path):
     # The unedited scene's background PSNR is +inf (identical images): its difference cannot be stated.
-    original = R.ReportRow("original", None, None, None, None,
+    original = R.ReportRow(Method.original("original"), None,
                            make_evaluate(tmp_path / "o", {"gt_psnr_background": math.inf}, (1, 2, 3)))
-    rows = [original] + [R.ReportRow("baseline", False, False, False, seed,
+    rows = [original] + [R.ReportRow(Method.idu(False, False, False, label="baseline"), seed,
                                      make_evaluate(tmp_path / f"b{seed}", {"gt_psnr_background": 20.0 + seed},
                                                    (1, 2, 3))) for seed in range(3)]
     R.build_report(rows, tmp_path / "r", title_info={})
@@ -160,7 +161,7 @@ def test_infinite_values_have_no_interval(tmp_path):
 
 
 def test_report_workflow_passes_the_reference_on(setup, tmp_path):  # noqa: F811 (the fixture)
-    from stages.commands.report import report_workflow
+    from experiments.commands.report import report_workflow
     from tests.test_report_command import _publish
 
     workflow, store, keys, values = setup

@@ -188,7 +188,7 @@ def test_emulator_works_on_every_edit_of_every_scene(tmp_path):
 
 
 def test_scene_list_prints_every_scene_with_views_size_and_edits(capsys):
-    from stages.cli import main
+    from experiments.cli import main
 
     assert main(["scene", "list"]) == 0
     lines = capsys.readouterr().out.splitlines()

@@ -242,7 +242,7 @@ def test_nerfstudio_format_writes_top_level_transforms(tmp_path):
 
 
 def test_scene_command(tmp_path, capsys):
-    from stages.cli import main
+    from experiments.cli import main
 
     out = tmp_path / "s"
     assert main(["--quiet", "scene", "tiny", "--out", str(out), "--n-views", "3", "--width", "32",

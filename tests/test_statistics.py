@@ -1,11 +1,11 @@
-"""stages/statistics.py against closed forms: identical rows, constant shifts, known means and spreads,
+"""experiments/statistics.py against closed forms: identical rows, constant shifts, known means and spreads,
 a two-point bootstrap distribution worked out by hand, and pairing by (scene, edit, seed) only."""
 import math
 
 import numpy as np
 import pytest
 
-from stages import statistics as S
+from experiments import statistics as S
 
 
 def _units(values, scene="tiny", edit="snow"):

@@ -3,8 +3,8 @@ from pathlib import Path
 
 import pytest
 
+from experiments.workflow import WorkflowError, load_workflow
 from pipeline.dag import External
-from stages.workflow import WorkflowError, load_workflow
 
 ROOT = Path(__file__).resolve().parents[1]
 ABLATION = ROOT / "workflows" / "ablation.toml"
@@ -12,11 +12,11 @@ ABLATION = ROOT / "workflows" / "ablation.toml"
 
 def test_ablation_expands_to_the_paper_grid_with_shared_upstream_steps():
     wf = load_workflow(ABLATION, ["scenes_dir=/nonexistent"])
-    toggles = [(c.variant.dual_field, c.variant.annealing, c.variant.consistency) for c in wf.cells[1:]]
+    toggles = [c.method.flags for c in wf.cells[1:]]
     # Table 2 of the paper, in its row order.
     assert toggles == [(False, False, False), (True, False, False), (True, True, False),
                        (False, False, True), (True, False, True), (True, True, True)]
-    assert wf.cells[0].variant is None and "edit" not in wf.cells[0].evaluate.inputs
+    assert wf.cells[0].is_original and "edit" not in wf.cells[0].evaluate.inputs
     fits = {id(c.evaluate.inputs["fit"]) for c in wf.cells}
     datasets = {id(c.evaluate.inputs["dataset"]) for c in wf.cells}
     assert len(fits) == 1 and len(datasets) == 1, "preprocess and fit must be one step for the whole grid"
@@ -85,8 +85,10 @@ def test_every_shipped_workflow_expands_and_its_params_validate(workflow, tmp_pa
     wf = load_workflow(workflow, ["scenes_dir=/nonexistent"])
     keyed = compute_keys(wf.steps, registry=STAGES, store=Store(tmp_path / "cache"))
     stages = {step.stage for step in keyed}
-    assert {"scene", "preprocess", "fit", "edit", "evaluate"} <= stages <= set(STAGES)
+    # Every workflow with edited rows runs the edit stage; workflows/reconstruct.toml (methods = []) has none.
+    edited = {"edit"} if any(c.method.flags for c in wf.cells) else set()
+    assert {"scene", "preprocess", "fit", "evaluate"} | edited <= stages <= set(STAGES)
     assert ("perframe" in stages) == any(c.label == "per-frame" for c in wf.cells)
     assert len([s for s in keyed if s.stage == "fit"]) == len(wf.scenes)
-    if "variants" in wf.settings:
-        assert len(wf.cells) == 1 + len(wf.settings["variants"]) * len(wf.settings.get("seeds", [0]))
+    if dict(wf.axes)["edit"] == 1 and len(wf.axes) == 4:       # one scene edit, no parameter axes
+        assert len(wf.cells) == 1 + len(wf.settings["methods"]) * len(wf.settings.get("seeds", [0]))

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from stages.workflow import WorkflowError, load_workflow
+from experiments.workflow import WorkflowError, load_workflow
 
 ROOT = Path(__file__).resolve().parents[1]
 WORKFLOWS = ROOT / "workflows"
@@ -26,7 +26,7 @@ def test_comparison_is_table1_over_every_library_scene_and_edit_but_tiny(tmp_pat
     wf = load_workflow(WORKFLOWS / "comparison.toml", [NO_USER])
     expected = {(scene, e.id) for scene, (_, edits) in BUILDERS.items() if scene != "tiny" for e in edits}
     assert {(c.scene, c.edit_id) for c in wf.cells} == expected
-    edited = [c for c in wf.cells if c.variant is not None]
+    edited = [c for c in wf.cells if not c.is_original]
     assert len(edited) == len(expected) * 3 * 3
     assert {c.label for c in edited} == {"per-frame", "IN2N", "DualNeRF"}
     assert {c.seed for c in edited} == {0, 1, 2}
@@ -93,7 +93,7 @@ def test_sweep_blend_is_wmax_by_lambda_with_one_in2n_reference(tmp_path):
 def test_set_takes_lists_a_list_for_a_scalar_param_is_an_axis():
     wf = load_workflow(WORKFLOWS / "ablation.toml", [NO_USER, "seeds=[0,1,2]", "methods=[\"IN2N\",\"DF\"]",
                                                      "edit.w_max_color=[0.05,0.1,0.3]"])
-    edited = [c for c in wf.cells if c.variant is not None]
+    edited = [c for c in wf.cells if not c.is_original]
     assert len(edited) == 2 * 3 * 3
     assert {dict(c.params)["edit.w_max_color"] for c in edited} == {0.05, 0.1, 0.3}
     assert all(c.edit.params["w_max_color"] == dict(c.params)["edit.w_max_color"] for c in edited)
@@ -125,7 +125,7 @@ def test_per_scene_edits_and_filters():
     wf = load_workflow(WORKFLOWS / "comparison.toml", [
         NO_USER, "exclude=[]", "scenes=[\"tiny\", \"campsite\"]", "edits={tiny = [\"snow\"], campsite = \"all\"}",
         "include=[{scene = \"tiny\"}, {method = \"DualNeRF\", seed = 0}]"])
-    edited = [c for c in wf.cells if c.variant is not None]
+    edited = [c for c in wf.cells if not c.is_original]
     assert {(c.scene, c.edit_id) for c in edited if c.scene == "tiny"} == {("tiny", "snow")}
     assert len([c for c in edited if c.scene == "tiny"]) == 9
     assert {(c.label, c.seed) for c in edited if c.scene == "campsite"} == {("DualNeRF", 0)}
@@ -245,7 +245,7 @@ def test_rerun_and_added_seed_or_value_compute_only_new_cells(tmp_path, monkeypa
 
 
 def test_dry_run_prints_the_grid_size_and_every_cell(tmp_path, capsys):
-    from stages.cli import main
+    from experiments.cli import main
 
     code = main(["--cache", str(tmp_path / "cache"), "run", str(WORKFLOWS / "sweep_blend.toml"), "--dry-run",
                  "--set", NO_USER, "--set", "seeds=[0,1]"])

@@ -12,11 +12,28 @@ CASES = [("ablation", []), ("ablation", ["seeds=[0,1,2]", "edit=blue_tent"]),
          ("smoke", []), ("ablation_paper", [])]
 
 
-def _keys(load, workflow, overrides, store):
+def _as_variants(workflow: str, folder) -> Path:
+    """The shipped workflow in the older syntax the frozen expander reads: `methods` (issue 31) as
+    `variants` rows."""
+    import tomllib
+
+    from experiments.methods import Method
+
+    path = ROOT / "workflows" / f"{workflow}.toml"
+    text = path.read_text()
+    names = tomllib.loads(text)["workflow"]["methods"]
+    rows = ", ".join("[" + ", ".join(str(f).lower() for f in Method.parse(n).flags) + "]" for n in names)
+    lines = [f"variants = [{rows}]" if line.startswith("methods =") else line for line in text.splitlines()]
+    copy = folder / path.name
+    copy.write_text("\n".join(lines) + "\n")
+    return copy
+
+
+def _keys(load, path, overrides, store):
     from pipeline.dag import compute_keys
     from stages import STAGES
 
-    wf = load(ROOT / "workflows" / f"{workflow}.toml", ["scenes_dir=/nonexistent", *overrides])
+    wf = load(path, ["scenes_dir=/nonexistent", *overrides])
     keyed = compute_keys(wf.steps, registry=STAGES, store=store)
     by_stage: dict[str, list] = {}
     for k in keyed.values():
@@ -27,13 +44,13 @@ def _keys(load, workflow, overrides, store):
 
 @pytest.mark.parametrize("workflow, overrides", CASES, ids=[" ".join([w, *o]) for w, o in CASES])
 def test_single_scene_workflows_keep_their_keys(workflow, overrides, tmp_path):
+    from experiments.workflow import load_workflow
     from pipeline.store import Store
-    from stages.workflow import load_workflow
     from tests.legacy_workflow import load_workflow as load_legacy
 
     store = Store(tmp_path / "cache")
-    old_steps, old_cells = _keys(load_legacy, workflow, overrides, store)
-    new_steps, new_cells = _keys(load_workflow, workflow, overrides, store)
+    old_steps, old_cells = _keys(load_legacy, _as_variants(workflow, tmp_path), overrides, store)
+    new_steps, new_cells = _keys(load_workflow, ROOT / "workflows" / f"{workflow}.toml", overrides, store)
     assert new_steps == old_steps          # same keys, and the same step labels in run records and logs
     assert new_cells == old_cells          # same rows, same labels, same evaluate keys
     assert len(old_steps["fit"]) == 1 and len(old_steps["edit"]) == len(old_cells) - 1

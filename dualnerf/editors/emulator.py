@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dualnerf.editors import EditorError, to_float_image, to_uint8_image
+from dualnerf.editors.base import EditorError, to_float_image, to_uint8_image
 
 EMULATOR_VERSION = 1
 
@@ -124,8 +124,9 @@ class InstructPix2PixEmulator:
             loaded = load_gt_edit(folder, edit_id, name)
             if loaded is None:
                 raise EditorError(f"{folder}/gt/edits/{edit_id}/images/{name} is missing: the InstructPix2Pix "
-                                  f"emulator needs the ground-truth edited view of every training image; "
-                                  f"regenerate the scene or use editor 'ip2p'.")
+                                  f"emulator needs the ground-truth edited view of every training image, which "
+                                  f"only procedural scenes have: for photographs use editor 'ip2p' "
+                                  f"(docs/tutorial.md); a procedural scene regenerated with `dualnerf scene` has it.")
             gt, mask = loaded
             if gt.shape != original.shape:
                 import cv2

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dualnerf.editors import EditorError, to_float_image
+from dualnerf.editors.base import EditorError, to_float_image
 
 IP2P_HUB_ID = "timbrooks/instruct-pix2pix"
 SUBFOLDERS = ("unet", "vae", "text_encoder", "tokenizer", "scheduler")

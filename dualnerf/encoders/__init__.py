@@ -31,8 +31,9 @@ def load_encoder(kind: str, model_dir: str | Path | None = None,
     """
     if kind == "clip":
         if not model_dir:
-            raise EncoderError("encoder 'clip' needs a model folder (encoder_model / --encoder-model); create one "
-                               "with `dualnerf models export-clip --from openai/clip-vit-base-patch32 --out DIR`.")
+            raise EncoderError("encoder 'clip' needs a model folder (the parameters edit.encoder_model and "
+                               "evaluate.encoder_model, e.g. --set edit.encoder_model=DIR); create one with "
+                               "`dualnerf models export-clip --from openai/clip-vit-base-patch32 --out DIR`.")
         from dualnerf.encoders.clip_onnx import ClipOnnxEncoder
 
         return ClipOnnxEncoder(Path(model_dir))

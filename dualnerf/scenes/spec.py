@@ -1,4 +1,6 @@
-"""Reading a procedural scene folder: its edit vocabulary and its ground-truth edited views.
+"""Reading a scene folder: its edit vocabulary (scene.toml) and, for procedural scenes, its ground-truth
+edited views. A folder of one's own photos needs only images/ and a scene.toml with [scene] name and its
+[[edits]] (docs/tutorial.md); the ground truth exists for procedural scenes only.
 
 Scene folder layout (a contract other stages code against):
     images/<name>.png                      original views, 8-bit RGB
@@ -61,15 +63,16 @@ def load_scene_spec(folder: Path) -> SceneSpec:
         doc = tomllib.loads(path.read_text())
     except FileNotFoundError:
         raise SceneSpecError(
-            f"{path} is missing: this folder is not a scene folder (generate one with "
-            f"`dualnerf scene NAME --out DIR`)."
+            f"{path} is missing: a scene folder needs a scene.toml naming the scene and its edits, e.g. "
+            f"[scene] name = \"{Path(folder).name}\" and an [[edits]] table with id, instruction, "
+            f"source_caption and target_caption (docs/tutorial.md)."
         ) from None
     except tomllib.TOMLDecodeError as err:
-        raise SceneSpecError(f"{path} is not valid TOML ({err}); fix or regenerate the scene.") from None
+        raise SceneSpecError(f"{path} is not valid TOML ({err}); fix the file at that line.") from None
     scene = doc.get("scene")
     if not isinstance(scene, dict):
-        raise SceneSpecError(f"{path}: the [scene] table is missing; it needs name, generator, seed, "
-                             f"width and height.")
+        raise SceneSpecError(f"{path}: the [scene] table is missing; it needs name = \"...\" (procedural scenes "
+                             f"also record generator, seed, width and height there).")
     name = _field(scene, "name", str, path, "[scene]")
     edits = []
     for i, entry in enumerate(doc.get("edits", [])):

@@ -64,8 +64,8 @@ def _params_summary(params: dict, limit: int = 60) -> str:
 
 
 def _ls(args: argparse.Namespace) -> int:
+    from experiments.cli import open_store
     from pipeline.store import Store  # noqa: F401  (import-light module)
-    from stages.cli import open_store
 
     store = open_store(args)
     pinned = store.pinned()
@@ -93,7 +93,7 @@ def _ls(args: argparse.Namespace) -> int:
 
 
 def _verify(args: argparse.Namespace) -> int:
-    from stages.cli import open_store
+    from experiments.cli import open_store
 
     store = open_store(args)
     if args.recompute:
@@ -151,9 +151,9 @@ def _recompute(store, args: argparse.Namespace) -> int:
 
 
 def _gc(args: argparse.Namespace) -> int:
+    from experiments.cli import open_store
     from pipeline.runrecord import referenced_keys
     from pipeline.store import StoreError
-    from stages.cli import open_store
 
     store = open_store(args)
     run_files = store.registered_run_files()
@@ -175,7 +175,7 @@ def _gc(args: argparse.Namespace) -> int:
 
 
 def _pin(args: argparse.Namespace) -> int:
-    from stages.cli import open_store
+    from experiments.cli import open_store
 
     store = open_store(args)
     key = store.resolve_prefix(args.key)
@@ -185,7 +185,7 @@ def _pin(args: argparse.Namespace) -> int:
 
 
 def _unpin(args: argparse.Namespace) -> int:
-    from stages.cli import open_store
+    from experiments.cli import open_store
 
     store = open_store(args)
     pinned = [k for k in store.pinned() if k.startswith(args.key)]
@@ -199,7 +199,7 @@ def _unpin(args: argparse.Namespace) -> int:
 
 
 def _salt(args: argparse.Namespace) -> int:
-    from stages.cli import open_store
+    from experiments.cli import open_store
 
     store = open_store(args)
     if args.value is None:

@@ -1,7 +1,7 @@
-"""`dualnerf report WORKFLOW --out DIR`: the report of a finished workflow (tables, grid, curves, HTML).
+"""`dualnerf report WORKFLOW [--out DIR]`: the report of a finished workflow (tables, grid, curves, HTML).
 
 It expands the workflow exactly as `dualnerf run` does, looks each evaluate/edit step's result up in the
-store by its key (computing nothing), and hands the folders to `stages.report.build_report`.
+store by its key (computing nothing), and hands the folders to `experiments.report.build_report`.
 `report_workflow` is the same thing for callers that already hold a workflow and a store (`run`).
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ def register(subparsers) -> None:
         description="Build tables (Markdown/CSV/JSON), an image grid, training curves and index.html from "
                     "the cached results of a workflow. Runs nothing: missing results are an error.")
     parser.add_argument("workflow", help="workflow TOML file")
-    parser.add_argument("--out", type=Path, default=None,
+    parser.add_argument("--out", type=Path, default=None, metavar="DIR",
                         help="report folder (default: the workflow's report_dir, e.g. reports/<scene>)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="the same overrides as `dualnerf run` (repeatable)")
@@ -27,8 +27,8 @@ def register(subparsers) -> None:
 
 
 def _report(args: argparse.Namespace) -> int:
-    from stages.cli import open_store
-    from stages.workflow import load_workflow
+    from experiments.cli import open_store
+    from experiments.workflow import load_workflow
 
     workflow = load_workflow(args.workflow, args.overrides)
     index = report_workflow(workflow, open_store(args), args.out, reference=args.reference)
@@ -38,9 +38,9 @@ def _report(args: argparse.Namespace) -> int:
 
 def workflow_rows(workflow, store) -> list:
     """One ReportRow per workflow cell, from the store; a ReportError lists cells without results."""
+    from experiments.report import ReportError, ReportRow
     from pipeline.dag import resolve_results
     from stages import STAGES
-    from stages.report import ReportError, ReportRow
 
     steps = [c.evaluate for c in workflow.cells] + [c.edit for c in workflow.cells if c.edit is not None]
     found = resolve_results(steps, registry=STAGES, store=store)
@@ -50,13 +50,8 @@ def workflow_rows(workflow, store) -> list:
                           f"`dualnerf run {workflow.path}` (with the same --set overrides) first.")
     rows = []
     for cell in workflow.cells:
-        variant = cell.variant
         rows.append(ReportRow(
-            label=cell.label,
-            dual_field=None if variant is None else variant.dual_field,
-            annealing=None if variant is None else variant.annealing,
-            consistency=None if variant is None else variant.consistency,
-            seed=cell.seed, evaluate_dir=Path(found[cell.evaluate]),
+            method=cell.method, seed=cell.seed, evaluate_dir=Path(found[cell.evaluate]),
             edit_dir=None if cell.edit is None else found.get(cell.edit),
             scene=cell.scene, edit=cell.edit_id, params=tuple(cell.params)))
     return rows
@@ -64,7 +59,7 @@ def workflow_rows(workflow, store) -> list:
 
 def report_workflow(workflow, store, out_dir: Path | None = None, *, reference: str | None = None) -> Path:
     """Build the report of `workflow` from `store` into `out_dir` (default workflow.report_dir)."""
-    from stages.report import build_report
+    from experiments.report import build_report
 
     title_info = {"workflow": f"{workflow.name} ({workflow.path})",
                   "scene": f"{workflow.scene_name} ({workflow.scene_origin})",

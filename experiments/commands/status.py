@@ -15,10 +15,10 @@ def register(subparsers) -> None:
 
 
 def _status(args: argparse.Namespace) -> int:
+    from experiments.cli import open_store
+    from experiments.workflow import load_workflow
     from pipeline.status import workflow_status
     from stages import STAGES
-    from stages.cli import open_store
-    from stages.workflow import load_workflow
 
     workflow = load_workflow(args.workflow, args.overrides)
     rows = workflow_status(workflow.steps, registry=STAGES, store=open_store(args), runs_dir=args.runs)

@@ -1,31 +1,11 @@
-"""DualNeRF vocabulary of a workflow grid: scenes x edits x methods x seeds x parameter axes -> steps.
+"""The axes of a workflow grid: scenes x edits x methods x seeds x parameter axes (the syntax, for users:
+docs/workflows.md; the generic product, filters and labels: `pipeline.grid`).
 
-The generic product, filters and labels are `pipeline.grid`; this module says what the axes mean:
-
-    scene    `scenes = ["campsite", "my_capture"]`, or "procedural" (every scene in
-             dualnerf.scenes.library at expansion time); a user folder <scenes_dir>/<name>/ wins over a
-             procedural scene of the same name. `scene = "x"` (one scene) still works.
-    edit     `edits = ["snow"]`, "all" (every edit of each scene), or a table per scene
-             (`edits = {campsite = "all", tiny = ["snow"]}`); default: the scene's first edit.
-             `edit = "x"` still works.
-    method   `methods = ["per-frame", "IN2N", "DualNeRF", "DF+SA", ...]`: "per-frame" is the per-frame
-             InstructPix2Pix baseline (stages.perframe), "IN2N" the single-field Instruct-NeRF2NeRF
-             baseline (DF, SA, CCI off), "DualNeRF" all three on, and any "+"-combination of DF, SA, CCI.
-             The old `variants = [[DF, SA, CCI], ...]` rows still work (labels "baseline", "DF+SA", ...).
-    seed     `seeds = [0, 1, 2]`: the edit seed of IDU rows, the editor seed of per-frame rows.
-    params   any number of `<stage>.<param>` axes. A LIST value for a parameter whose declared type is a
-             scalar (int, float, str, bool) is an axis, wherever it is written: `[stages.edit]
-             w_max_color = [0.05, 0.1]`, `--set edit.w_max_color=[0.05,0.1]`, or an `[axes]` table
-             (`"edit.blend_rate" = [0.0025, 0.005]`). An `[axes]` entry may set several parameters to the
-             same value: `w_max = {params = ["edit.w_max_density", "edit.w_max_color"], values = [...]}`;
-             `--set w_max=[...]` replaces its values.
-    filters  `include = [{scene = "campsite"}]`, `exclude = [{method = "per-frame", seed = 1}]` over the
-             axis names scene, edit, method, seed and the parameter axes (pipeline.grid semantics).
-
-Every `<stage>.<param>` is checked against the stage's Params dataclass before anything runs, and an axis
-that no cell reads (e.g. an edit parameter in a grid of per-frame rows only) is refused. Each cell gets
-the unedited scene's row ("Original scene") once per distinct (scene, edit, fit and evaluate setting);
-identical steps are one Step object (and one key), so preprocess and fit run once per scene and setting.
+Here: which stage parameters a workflow may set and which it sets itself (MANAGED), the method and seed
+axes, the parameter axes (a LIST value for a parameter whose declared type is a scalar is an axis, in
+`[stages.<stage>]`, `--set` or `[axes]`, where one entry may set several parameters), every
+`<stage>.<param>` checked against the stage's Params before anything runs, and GridBuilder, which makes
+identical invocations one Step (one key), so preprocess and fit run once per scene and setting.
 """
 from __future__ import annotations
 
@@ -35,29 +15,21 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from experiments.methods import EDIT_PARAMS, Method, MethodError
 from pipeline.dag import Step
 from pipeline.grid import Axis, expand, format_value
 
 GRID_STAGES = ("scene", "preprocess", "fit", "edit", "perframe", "evaluate")
 SCALAR_TYPES = {"int", "float", "str", "bool"}
 # Parameters the workflow sets from its own axes and vocabulary (never a user axis or value).
-MANAGED = {"edit": {"dual_field": "methods", "annealing": "methods", "consistency": "methods",
-                    "seed": "seeds", "edit_id": "edits", "instruction": "[workflow] instruction"},
+MANAGED = {"edit": {**{param: "methods" for param in EDIT_PARAMS}, "seed": "seeds", "edit_id": "edits",
+                    "instruction": "[workflow] instruction"},
            "perframe": {"seed": "seeds", "edit_id": "edits", "instruction": "[workflow] instruction"},
            "evaluate": {"edit_id": "edits", "source_caption": "[workflow] source_caption",
                         "target_caption": "[workflow] target_caption"},
            "scene": {"name": "scenes"}}
 # The per-frame baseline uses the same editor as the IDU rows: these edit parameters reach it too.
 PERFRAME_FROM_EDIT = ("editor", "editor_model", "device")
-PER_FRAME = "per-frame"
-NAMED_METHODS = {"IN2N": (False, False, False), "DualNeRF": (True, True, True)}
-TOGGLES = ("DF", "SA", "CCI")
-
-
-@dataclass(frozen=True)
-class Method:
-    label: str
-    toggles: tuple[bool, bool, bool] | None       # (DF, SA, CCI); None for the per-frame baseline
 
 
 @dataclass(frozen=True)
@@ -92,44 +64,21 @@ def check_param(error, stage: str, param: str, where: str) -> str:
 
 
 def parse_methods(error, path: Path, settings: dict) -> list[Method]:
-    if "methods" in settings and "variants" in settings:
-        raise error(f"{path}: give either [workflow] methods or the older variants, not both.")
-    if "variants" in settings:
-        raw = settings["variants"]
-        if not isinstance(raw, list) or not raw:
-            raise error(f"{path}: [workflow] variants must be a non-empty list of [DF, SA, CCI] booleans.")
-        methods = []
-        for row in raw:
-            if not (isinstance(row, list) and len(row) == 3 and all(isinstance(v, bool) for v in row)):
-                raise error(f"{path}: variant {row!r} must be three booleans [DF, SA, CCI].")
-            on = [name for name, flag in zip(TOGGLES, row) if flag]
-            methods.append(Method("+".join(on) if on else "baseline", tuple(row)))
-        return _unique(error, path, methods)
+    """The method axis: `methods = [...]` names (experiments.methods), distinct. An empty list (with the
+    unedited rows kept: `original`, the default) runs no edit: the scene's reconstruction only."""
     raw = settings.get("methods")
     if raw is None:
         raise error(f"{path}: [workflow] needs methods, e.g. methods = [\"per-frame\", \"IN2N\", \"DualNeRF\"].")
     raw = [raw] if isinstance(raw, str) else raw
+    if raw == [] and settings.get("original", True):
+        return []
     if not isinstance(raw, list) or not raw or not all(isinstance(m, str) for m in raw):
-        raise error(f"{path}: [workflow] methods must be a non-empty list of method names, got {raw!r}.")
-    return _unique(error, path, [_method(error, path, name) for name in raw])
-
-
-def _method(error, path: Path, name: str) -> Method:
-    if name == PER_FRAME:
-        return Method(PER_FRAME, None)
-    if name in NAMED_METHODS:
-        return Method(name, NAMED_METHODS[name])
-    if name == "baseline":
-        return Method(name, (False, False, False))
-    parts = name.split("+")
-    if not set(parts) <= set(TOGGLES) or len(set(parts)) != len(parts):
-        raise error(f"{path}: unknown method '{name}'; methods are '{PER_FRAME}', 'IN2N', 'DualNeRF', "
-                    f"'baseline' or a '+'-combination of {', '.join(TOGGLES)} (e.g. 'DF+SA').")
-    toggles = tuple(t in parts for t in TOGGLES)
-    return Method("+".join(t for t in TOGGLES if t in parts), toggles)
-
-
-def _unique(error, path: Path, methods: list[Method]) -> list[Method]:
+        raise error(f"{path}: [workflow] methods must be a list of method names (empty only with the unedited "
+                    f"rows, original = true), got {raw!r}.")
+    try:
+        methods = [Method.parse(name) for name in raw]
+    except MethodError as err:
+        raise error(f"{path}: {err}") from None
     labels = [m.label for m in methods]
     if len(set(labels)) != len(labels):
         raise error(f"{path}: methods must be distinct, got {labels}.")
@@ -232,9 +181,7 @@ def label_of(prefix: str, parts: list[str], read: dict[str, Any]) -> str:
 __all__ = [
     "GRID_STAGES",
     "PERFRAME_FROM_EDIT",
-    "PER_FRAME",
     "GridBuilder",
-    "Method",
     "ParamAxis",
     "expand",
     "grid_axes",

@@ -1,7 +1,9 @@
 """`dualnerf run WORKFLOW`: expand the grid, compute every missing step once, then write the report.
 
 Rerunning the same command after an interruption continues: finished steps come from the store,
-interrupted ones resume from their newest in-stage checkpoint.
+interrupted ones resume from their newest in-stage checkpoint. `--force STAGE[,...]` recomputes the
+steps of those stages and everything downstream of them: their cached results are moved aside to the
+store's quarantine/ folder (`dualnerf cache gc` removes it), and the run computes them again.
 """
 from __future__ import annotations
 
@@ -30,9 +32,13 @@ def register(subparsers) -> None:
                              "the cores are split among the steps running at once)")
     parser.add_argument("--ray-address", default=None,
                         help="Ray cluster to join (default: start a local Ray instance)")
-    parser.add_argument("--reports", type=Path, default=None,
+    parser.add_argument("--out", type=Path, default=None, metavar="DIR",
                         help="report folder (default: the workflow's report_dir, e.g. reports/<scene>)")
+    parser.add_argument("--reports", type=Path, dest="out", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     parser.add_argument("--no-report", action="store_true", help="skip the report at the end")
+    parser.add_argument("--force", default=None, metavar="STAGE[,STAGE...]",
+                        help="recompute the steps of these stages (e.g. --force edit,evaluate) and every step "
+                             "downstream of them, although their results are cached")
     parser.set_defaults(handler=_run)
 
 
@@ -54,25 +60,32 @@ def default_jobs(steps) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from experiments.cli import open_store
+    from experiments.workflow import load_workflow
     from pipeline.dag import dry_run
     from pipeline.executors import make_executor
     from pipeline.paths import confined
     from pipeline.runner import run_steps
     from stages import STAGES
-    from stages.cli import open_store
-    from stages.workflow import load_workflow
 
     workflow = load_workflow(args.workflow, args.overrides)
     store = open_store(args)
     _print_banner(workflow)
+    forced = forced_keys(workflow, args.force, store) if args.force else set()
     if args.dry_run:
         rows = dry_run(workflow.steps, registry=STAGES, store=store)
         print_grid(workflow)
         print(f"steps ({len(rows)}, shared ones once):")
         width = max(len(label) for label, _, _ in rows)
         for label, key, state in rows:
+            state = "cached, forced: recomputed" if state == "cached" and any(k.startswith(key) for k in forced) else state
             print(f"  {label.ljust(width)}  {key}  {state}")
         return 0
+    if forced:
+        moved = [key for key in sorted(forced) if store.object_path(key).is_dir()
+                 and store.quarantine(key, [f"recomputed on request: dualnerf run --force {args.force}"])]
+        print(f"force: {len(forced)} step(s) of {args.force} and downstream recompute; {len(moved)} cached "
+              f"result(s) moved to {store.quarantine_dir}")
 
     jobs = args.jobs or default_jobs(workflow.steps)
     executor = make_executor(args.executor, jobs=jobs, address=args.ray_address)
@@ -94,10 +107,33 @@ def _run(args: argparse.Namespace) -> int:
         if skipped:
             print(f"  skipped, as an upstream step failed: {', '.join(skipped)}", file=sys.stderr)
     if not args.no_report:
-        _write_report(workflow, store, args.reports, partial=bool(result.failed))
+        _write_report(workflow, store, args.out, partial=bool(result.failed))
     if result.first_error():
         print(f"run: {result.first_error()}", file=sys.stderr)     # the last line says what went wrong
     return 1 if result.failed else 0
+
+
+class ForceError(ValueError):
+    user_error = True
+
+
+def forced_keys(workflow, stages_text: str, store) -> set[str]:
+    """The keys of the steps of the named stages and of every step downstream of them."""
+    from pipeline.dag import compute_keys
+    from stages import STAGES
+
+    names = [name.strip() for name in stages_text.split(",") if name.strip()]
+    present = list(dict.fromkeys(step.stage for step in workflow.steps))
+    unknown = [name for name in names if name not in present]
+    if unknown or not names:
+        raise ForceError(f"--force {stages_text!r}: {', '.join(unknown) or 'no stage'} names no stage of this "
+                         f"workflow; its stages are {', '.join(present)} (e.g. --force edit,evaluate).")
+    keyed = compute_keys(workflow.steps, registry=STAGES, store=store)     # upstream before downstream
+    chosen: set = set()
+    for step, k in keyed.items():
+        if step.stage in names or any(up in chosen for up in k.upstream.values()):
+            chosen.add(step)
+    return {keyed[step].key for step in chosen}
 
 
 def print_grid(workflow) -> None:
@@ -112,7 +148,7 @@ def _print_banner(workflow) -> None:
     step = next((c.edit or c.perframe for c in reversed(workflow.cells) if (c.edit or c.perframe)), None)
     editor = step.params.get("editor", "synthetic") if step is not None else "-"
     encoder = workflow.cells[-1].evaluate.params.get("encoder", "proxy")
-    edited = sum(1 for c in workflow.cells if c.variant is not None)
+    edited = sum(1 for c in workflow.cells if not c.is_original)
     if len(workflow.scenes) <= 1 and len({c.edit_id for c in workflow.cells}) == 1:
         print(f"workflow {workflow.name}: scene '{workflow.scene_name}' ({workflow.scene_origin}), edit "
               f"'{workflow.edit_id}': \"{workflow.instruction}\"; {edited} edited cells + original")
@@ -127,8 +163,8 @@ def _print_banner(workflow) -> None:
 
 
 def _write_report(workflow, store, out_dir: Path | None, partial: bool) -> None:
-    from stages.commands.report import report_workflow
-    from stages.report import ReportError
+    from experiments.commands.report import report_workflow
+    from experiments.report import ReportError
 
     try:
         index = report_workflow(workflow, store, out_dir)

@@ -1,5 +1,5 @@
-"""The report's statistics sections: paired differences to a reference row, per-scene tables, parameter
-plots. The numbers come from stages/statistics.py; this module groups report rows, formats and draws.
+"""The report's statistics sections: paired differences to a reference row (Markdown and HTML). The
+numbers come from experiments/statistics.py; this module groups report rows and formats them.
 
 Rows with equal (label, params) are one table row; (scene, edit, seed) is the pairing unit.
 """
@@ -7,29 +7,12 @@ from __future__ import annotations
 
 import html
 import math
-from pathlib import Path
 
-import numpy as np
-
-from dualnerf.metrics import METRICS, json_value
-from stages import statistics as S
+from dualnerf.metrics import json_value
+from experiments import statistics as S
+from experiments.report.rows import display_label, row_key
 
 DEFAULT_REFERENCE = "baseline"          # the single-field Instruct-NeRF2NeRF row of the shipped workflows
-
-
-def row_key(row) -> tuple:
-    """What makes a table row: the method label and the parameter-axis values (ReportRow or TableRow)."""
-    return (row.label, tuple(row.params))
-
-
-def display_label(label: str, params: tuple, *, original: bool = False) -> str:
-    text = "Original Scene" if original else label
-    return text + (" [" + ", ".join(f"{k}={v}" for k, v in params) + "]" if params else "")
-
-
-def scene_edits(rows) -> list[tuple[str, str]]:
-    """The distinct (scene, edit) pairs of the rows, in first-seen order."""
-    return list(dict.fromkeys((row.scene, row.edit) for row in rows))
 
 
 def _unit_values(rows, docs, column: str, metric_value) -> dict[tuple, dict]:
@@ -123,7 +106,7 @@ def markdown_section(table, columns, headers, paired: dict, reference: str) -> l
             continue
         diffs = paired[key]
         pairs = max(d.n_pairs for d in diffs.values())
-        lines.append(f"| {display_label(*key, original=trow.toggles[0] is None)} | {pairs} | "
+        lines.append(f"| {display_label(*key, original=trow.method.is_original)} | {pairs} | "
                      + " | ".join(format_diff(diffs.get(c), c) for c in columns) + " |")
     lines += ["", caption(reference)] + [f"- {note}" for note in _unpaired_note(paired)]
     return lines
@@ -139,7 +122,7 @@ def html_section(table, columns, headers, paired: dict, reference: str) -> str:
         if key not in paired:
             continue
         diffs = paired[key]
-        parts.append(f"<tr><td style='text-align:left'>{esc(display_label(*key, original=trow.toggles[0] is None))}"
+        parts.append(f"<tr><td style='text-align:left'>{esc(display_label(*key, original=trow.method.is_original))}"
                      f"</td><td>{max(d.n_pairs for d in diffs.values())}</td>")
         for c in columns:
             diff = diffs.get(c)
@@ -153,90 +136,3 @@ def html_section(table, columns, headers, paired: dict, reference: str) -> str:
                      "intervals.</p>")
     parts += [f"<p class='note'>{esc(note)}</p>" for note in _unpaired_note(paired)]
     return "".join(parts)
-
-
-# ---------------------------------------------------------------------------------------------- plots
-
-def parameter_keys(table) -> list[str]:
-    return list(dict.fromkeys(k for trow in table for k, _ in trow.params))
-
-
-def _axis_value(value):
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return None
-
-
-def write_parameter_plots(table, columns, out_dir: Path, reference: str | None = None) -> list[str]:
-    """One figure per parameter axis: each metric (a panel) against the parameter's value, mean ± std over
-    seeds as error bars, one line per method label and setting of the other axes. A `reference` row that
-    does not vary along the axis is drawn as a dashed level with a ±std band."""
-    keys = parameter_keys(table)
-    if not keys or not columns:
-        return []
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    written = []
-    for key in keys:
-        series: dict[tuple, list] = {}
-        for trow in table:
-            params = dict(trow.params)
-            if key not in params:
-                continue
-            rest = tuple((k, v) for k, v in trow.params if k != key)
-            series.setdefault((trow.label, rest), []).append((params[key], trow))
-        values = list(dict.fromkeys(v for points in series.values() for v, _ in points))
-        levels = [t for t in table if t.label == reference and key not in dict(t.params)]
-        numeric = all(_axis_value(v) is not None for v in values)
-        position = {v: (_axis_value(v) if numeric else i) for i, v in enumerate(values)}
-        width = min(4, len(columns))
-        rows_n = math.ceil(len(columns) / width)
-        fig, axes = plt.subplots(rows_n, width, figsize=(3.6 * width, 2.9 * rows_n), squeeze=False)
-        for ax, column in zip(axes.flat, columns):
-            for (label, rest), points in series.items():
-                points = sorted(points, key=lambda p: position[p[0]])
-                x = [position[v] for v, _ in points]
-                y = [t.mean[column] for _, t in points]
-                err = [0.0 if math.isnan(t.std[column]) else t.std[column] for _, t in points]
-                if all(not np.isfinite(v) for v in y):
-                    continue
-                ax.errorbar(x, y, yerr=err, marker="o", markersize=3, capsize=3,
-                            label=display_label(label, rest))
-            if len(levels) == 1 and np.isfinite(levels[0].mean[column]):
-                level, spread = levels[0].mean[column], levels[0].std[column]
-                ax.axhline(level, linestyle="--", color="0.4", label=f"{reference} (reference)")
-                if np.isfinite(spread):
-                    ax.axhspan(level - spread, level + spread, color="0.6", alpha=0.2)
-            info = METRICS[column]
-            ax.set_title(f"{info.symbol} {'↑' if info.higher_is_better else '↓'}", fontsize=9)
-            ax.set_xlabel(key, fontsize=8)
-            if numeric and len(values) > 2 and min(position.values()) > 0 and \
-                    max(position.values()) / min(position.values()) >= 10:
-                ax.set_xscale("log")
-                ax.minorticks_off()
-            # Ticks at the grid's values, written as given in the workflow.
-            ax.set_xticks([position[v] for v in values], [str(v) for v in values], fontsize=7)
-            ax.grid(alpha=0.3)
-        for ax in list(axes.flat)[len(columns):]:
-            ax.axis("off")
-        handles, labels = axes.flat[0].get_legend_handles_labels()
-        if handles:
-            fig.legend(handles, labels, loc="lower center", ncol=min(4, len(labels)), fontsize=7)
-        fig.suptitle(f"metrics against {key} (mean ± std over seeds)", fontsize=10)
-        fig.tight_layout(rect=(0, 0.08 if handles else 0, 1, 0.95))
-        (out_dir / "params").mkdir(exist_ok=True)
-        rel = f"params/{_slug(key)}.png"
-        fig.savefig(out_dir / rel, dpi=90)
-        plt.close(fig)
-        written.append(rel)
-    return written
-
-
-def _slug(text: str) -> str:
-    import re
-
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_") or "param"

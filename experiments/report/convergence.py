@@ -13,12 +13,14 @@ import json
 import math
 from pathlib import Path
 
+from stages import layout
+
 
 def load_convergence(edit_dir: Path | None) -> dict | None:
     """The "convergence" columns of an edit result's curves.json, or None when there are none."""
     if edit_dir is None:
         return None
-    path = Path(edit_dir) / "curves.json"
+    path = Path(edit_dir) / layout.CURVES
     try:
         doc = json.loads(path.read_text())
     except (FileNotFoundError, json.JSONDecodeError):

@@ -1,4 +1,4 @@
-"""`python -m stages.check_smoke REPORT_DIR`: the smoke run's acceptance check (used by `make smoke`).
+"""`python -m experiments.check_smoke REPORT_DIR`: the smoke run's acceptance check (used by `make smoke`).
 
 Fails (exit 1, naming what is wrong) unless the report has index.html, the grid and a table whose every
 row has a finite value in every metric column that applies to it, and browser-playable videos."""
@@ -23,7 +23,7 @@ def problems(report_dir: Path) -> list[str]:
     for row in table["rows"]:
         for column, cell in row["metrics"].items():
             value = cell["mean"]
-            original_only_gap = row["dual_field"] is None and value is None
+            original_only_gap = row["kind"] == "original" and value is None
             if original_only_gap:
                 continue      # e.g. edit-vs-original metrics are undefined for the original row
             if not isinstance(value, (int, float)) or not math.isfinite(value):

@@ -1,4 +1,5 @@
-"""`dualnerf scene NAME --out DIR`: render a procedural (synthetic) scene with its ground-truth edits."""
+"""`dualnerf scene NAME --out DIR`: render a procedural (synthetic) scene with its ground-truth edits;
+`dualnerf scene list`: the scenes and their edits."""
 from __future__ import annotations
 
 import argparse
@@ -13,9 +14,9 @@ def register(subparsers) -> None:
         "scene", help="render a procedural test scene (synthetic) with ground-truth edits",
         description="Render a procedural scene: synthetic views from a ray caster (not photographs), its "
                     "edit vocabulary (scene.toml) and 3D-consistent ground-truth edited views and masks.")
-    parser.add_argument("name", nargs="?", help="scene name, or 'list' to list the scenes")
-    parser.add_argument("--out", type=Path, help="output folder (must not exist or be empty)")
-    parser.add_argument("--list", action="store_true", help="list the scenes and their edits")
+    parser.add_argument("name", nargs="?", help="scene name, or 'list' to list the scenes and their edits")
+    parser.add_argument("--out", type=Path, metavar="DIR", help="output folder (must not exist or be empty)")
+    parser.add_argument("--list", action="store_true", help=argparse.SUPPRESS)     # older spelling of `list`
     parser.add_argument("--seed", type=int, default=0, help="texture seed (default 0)")
     parser.add_argument("--format", choices=("scene", "nerfstudio"), default="scene",
                         help="'nerfstudio' also writes a top-level transforms.json for the import path")
