@@ -53,8 +53,10 @@ def main(argv: list[str] | None = None) -> None:
     from stages.edit import EditParams, build_editor, build_encoder
     from stages.fit import FitParams, FitStage
 
-    torch.set_num_threads(args.threads)
-    print(f"cores: {os.cpu_count()}, torch threads: {args.threads}; timings include other load (check `uptime`)")
+    from dualnerf.numerics import use_threads
+
+    use_threads(args.threads)           # as the stages: the kernels on --threads, torch on one
+    print(f"cores: {os.cpu_count()}, kernel threads: {args.threads}; timings include other load (check `uptime`)")
     with tempfile.TemporaryDirectory(prefix="bench-edit-") as tmp:
         tmp = Path(tmp)
         start = time.perf_counter()

@@ -127,11 +127,13 @@ def main() -> None:
 
     threads = int(os.environ.get("DUALNERF_BENCH_THREADS", "2"))
     seconds = float(os.environ.get("DUALNERF_BENCH_SECONDS", "180"))
-    torch.set_num_threads(threads)
+    from dualnerf.numerics import use_threads
+
+    use_threads(threads)                # as the fit stage: the kernels on `threads`, torch on one
     with tempfile.TemporaryDirectory() as tmp:
         ds = load_dataset(_dataset(Path(tmp)))
         print(f"campsite {ds.width}x{ds.height}, {len(ds.indices('train'))} train / "
-              f"{len(ds.indices('heldout'))} held-out views; {threads} torch threads; "
+              f"{len(ds.indices('heldout'))} held-out views; {threads} kernel threads; "
               f"load average {os.getloadavg()[0]:.1f} at start")
         model, curve, final_psnr = fit_curve(ds, seconds)
         print(f"fit: held-out PSNR (all held-out views) {final_psnr:.2f} dB after {curve[-1][0]:.0f} s "

@@ -34,7 +34,8 @@ def matmul_flops(threads: int, size: int = 1024, repeats: int = 5) -> float:
     """Measured float32 FLOP/s of a size^3 matmul (median of `repeats`)."""
     import torch
 
-    torch.set_num_threads(threads)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)      # the BLAS on the threads the kernels get (the stages keep torch on one)
     a = torch.randn(size, size)
     b = torch.randn(size, size)
     a @ b
@@ -43,6 +44,7 @@ def matmul_flops(threads: int, size: int = 1024, repeats: int = 5) -> float:
         start = time.perf_counter()
         a @ b
         times.append(time.perf_counter() - start)
+    torch.set_num_threads(previous)
     return 2.0 * size ** 3 / statistics.median(times)
 
 

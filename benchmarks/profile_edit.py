@@ -115,9 +115,11 @@ def load_fitted_field(args, tmp: Path):
     from dualnerf.dataset import load_dataset
     from dualnerf.model import load_model
 
-    torch.set_num_threads(args.threads)
-    print(f"cores: {os.cpu_count()}, torch threads: {args.threads}, load {os.getloadavg()[0]:.2f}; "
-          "timings include other load")
+    from dualnerf.numerics import use_threads
+
+    use_threads(args.threads)          # as the stages run: the kernels on --threads, torch on one
+    print(f"cores: {os.cpu_count()}, kernel threads: {args.threads} (torch: {torch.get_num_threads()}), "
+          f"load {os.getloadavg()[0]:.2f}; timings include other load")
     data_dir, model_dir = _fitted_field(args, tmp)
     static = load_model(model_dir)
     static.config = dataclasses.replace(static.config, render_samples_per_ray=args.render_samples)

@@ -66,8 +66,10 @@ def _build():
     try:
         from torch.utils.cpp_extension import load
 
+        portable = ["-DDUALNERF_NO_AVX512"] if _portable_build() else []
         return load(build_name(), [str(p) for p in _SOURCES],
-                    extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"], extra_ldflags=["-fopenmp"], verbose=False)
+                    extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", *portable], extra_ldflags=["-fopenmp"],
+                    verbose=False)
     # No compiler, no ninja, a failed build: the reference path still works.
     except (OSError, RuntimeError, ImportError, subprocess.CalledProcessError) as error:
         log.warning("dualnerf: the C++ field kernels could not be built (%s); using the plain torch "
@@ -80,7 +82,13 @@ def build_name() -> str:
     """The extension's name: named by the sources' and headers' content, so torch rebuilds on changed
     sources only, and a changed header never reuses an extension compiled from the old one."""
     digest = hashlib.sha256(b"".join(p.read_bytes() for p in _SOURCES + _HEADERS)).hexdigest()[:12]
-    return f"dualnerf_field_kernels_{digest}"
+    return f"dualnerf_field_kernels_{digest}" + ("_portable" if _portable_build() else "")
+
+
+def _portable_build() -> bool:
+    """DUALNERF_KERNEL_BUILD=portable: compile without the AVX-512 code (what a CPU or compiler without
+    it runs; for tests: the results must be the same bits)."""
+    return os.environ.get("DUALNERF_KERNEL_BUILD", "") == "portable"
 
 
 def kernel_name() -> str:

@@ -21,7 +21,9 @@
 #include <optional>
 #include <vector>
 
-#if defined(__x86_64__) && defined(__GNUC__)
+// DUALNERF_NO_AVX512 (DUALNERF_KERNEL_BUILD=portable): a build with the portable code only, as on a
+// compiler or CPU without AVX-512; it must give the same bits (tests/test_kernel_threads.py).
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(DUALNERF_NO_AVX512)
 #include <cpuid.h>
 #include <immintrin.h>
 #include <sys/syscall.h>
