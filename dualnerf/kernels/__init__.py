@@ -34,6 +34,7 @@ agree to float32 rounding (tests/test_grid_kernel.py), not bit for bit, so resul
 """
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import logging
 import os
@@ -64,18 +65,37 @@ def grid_kernel():
 
 def _build():
     try:
-        from torch.utils.cpp_extension import load
+        from torch.utils.cpp_extension import _get_build_directory, load
 
+        name = build_name()
+        build_directory = Path(_get_build_directory(name, verbose=False))
         portable = ["-DDUALNERF_NO_AVX512"] if _portable_build() else []
-        return load(build_name(), [str(p) for p in _SOURCES],
-                    extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", *portable], extra_ldflags=["-fopenmp"],
-                    verbose=False)
+        with _builder_lock(build_directory):
+            return load(name, [str(p) for p in _SOURCES], build_directory=str(build_directory),
+                        extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", *portable], extra_ldflags=["-fopenmp"],
+                        verbose=False)
     # No compiler, no ninja, a failed build: the reference path still works.
     except (OSError, RuntimeError, ImportError, subprocess.CalledProcessError) as error:
         log.warning("dualnerf: the C++ field kernels could not be built (%s); using the plain torch "
                     "reference path, which is ~2x slower. Install a C++ compiler and ninja, or set "
                     "DUALNERF_KERNELS=0 to silence this.", str(error).splitlines()[0] if str(error) else error)
         return None
+
+
+@contextmanager
+def _builder_lock(build_directory: Path):
+    """Serialise builders of one extension with a lock the OS releases when its holder dies, and clear
+    torch's own lock file under it. torch's `lock` is a plain file that a build killed mid-way (a test
+    timeout, Ctrl-C, a CI kill) leaves behind, and every later load of that extension then waits on it
+    forever; since every live builder holds this lock first, a `lock` file found while holding it is stale."""
+    build_directory.mkdir(parents=True, exist_ok=True)
+    with open(build_directory / "dualnerf-builder.lock", "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            (build_directory / "lock").unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def build_name() -> str:
