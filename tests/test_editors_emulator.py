@@ -180,7 +180,7 @@ def test_lock_in_follows_the_mode_the_render_shows_at_low_noise_and_the_prior_at
     high = modes(alt, 0.98)
     assert abs((high == 0).mean() - prior) < 0.12
     # Off: the ground truth is the only mode, whatever the render.
-    assert (modes(alt, 0.05, **{"lock_in": False}) == 0).all()
+    assert (modes(alt, 0.05, lock_in=False) == 0).all()
     # The drawn mode is what the output shows: at noise 1 the output is that mode's image.
     emu = _emulator(view, lock_in=True)
     for seed in range(20):
@@ -190,7 +190,7 @@ def test_lock_in_follows_the_mode_the_render_shows_at_low_noise_and_the_prior_at
 
 
 def test_systematic_background_cast_does_not_average_out():
-    bg_of = lambda v: ~v.mask  # noqa: E731
+    bg_of = lambda v: ~v.mask
     for weight in (0.0, 1.0):
         view = _two_mode_view(cast_weight=weight)
         emu = _emulator(view, background_cast=0.05, background_drift=0.04)
