@@ -66,8 +66,8 @@ class EvaluateStage(TorchNumerics, Stage):
     name = "evaluate"
     # 3: LPIPS metrics; path.mp4 is H.264 (was mp4v); 4: packed renders; 5: thread-count independent
     # renders, metrics and video; 6: the proxy's target caption from the edit's specification (caption
-    # images of the training views) instead of the ground-truth edit, and metrics.json's
-    # `sees_ground_truth` list
+    # images of the training views) instead of the ground-truth edit, metrics.json's `sees_ground_truth`
+    # list, and gt_mode_share (which mode the edit ended in)
     version = "6"
     Params = EvaluateParams
     # "original": the evaluate result of the unedited scene (same dataset and fit). Edited rows reuse its
@@ -96,6 +96,7 @@ class EvaluateStage(TorchNumerics, Stage):
             ground_truth_metrics,
             json_value,
             mean_over_views,
+            mode_share,
             ssim,
         )
         from dualnerf.model import load_model, saved_blend
@@ -214,6 +215,12 @@ class EvaluateStage(TorchNumerics, Stage):
             gt_images, gt_masks = gt
             values.update(ground_truth_metrics(views["edited"], gt_images, gt_masks,
                                                [dataset.images[i] for i in view_ids]))
+            modes = _mode_ground_truth(data_dir, p.edit_id, dataset, view_ids)
+            if modes is not None:
+                mode_images, region = modes
+                values["gt_mode_share"] = mode_share(views["edited"], gt_images, mode_images,
+                                                     [dataset.images[i] for i in view_ids],
+                                                     [g | r for g, r in zip(gt_masks, region)])
             for name, image, mask in zip(view_names, gt_images, gt_masks):
                 write_png(layout.view_path(out, layout.GT_EDIT, name), image)
                 write_png(layout.view_path(out, layout.GT_MASK, name),
@@ -319,6 +326,24 @@ def _ground_truth(data_dir: Path, edit_id: str, dataset, view_ids):
                                 f"{image.shape[1]}x{image.shape[0]} but the dataset image is "
                                 f"{dataset.width}x{dataset.height}; regenerate the scene and rerun preprocess.")
     return [f[0] for f in found], [f[1] for f in found]
+
+
+def _mode_ground_truth(data_dir: Path, edit_id: str, dataset, view_ids):
+    """([mode k's image per view] per alternative mode, the modes' masks' union per view) at the fixed views,
+    or None when the scene lists no alternative modes for the edit (or lacks their views)."""
+    from dualnerf.scenes.spec import load_gt_edit, load_scene_spec, mode_edit_id
+
+    if not edit_id or not (data_dir / "scene.toml").is_file():
+        return None
+    modes = load_scene_spec(data_dir).edit(edit_id).modes
+    images, region = [], [np.zeros(dataset.images[i].shape[:2], bool) for i in view_ids]
+    for mode in modes:
+        found = [load_gt_edit(data_dir, mode_edit_id(edit_id, mode), dataset.names[i]) for i in view_ids]
+        if any(f is None or f[0].shape != dataset.images[i].shape for f, i in zip(found, view_ids)):
+            return None
+        images.append([f[0] for f in found])
+        region = [r | f[1] for r, f in zip(region, found)]
+    return (images, region) if images else None
 
 
 def _encoder(p: EvaluateParams, data_dir: Path, dataset, train, captions: dict):

@@ -110,3 +110,19 @@ def test_systematic_background_cast_is_learnt_by_the_baseline(small):
           f"views' cast weights {np.corrcoef(learnt, weights)[0, 1]:.2f}")
     assert learnt.mean() > 0.01
     assert np.corrcoef(learnt, weights)[0, 1] > 0.5
+
+
+def test_mode_share_closed_forms():
+    from dualnerf.metrics import mode_share
+
+    rng = np.random.default_rng(0)
+    original = [rng.uniform(0, 1, (8, 8, 3)) for _ in range(2)]
+    gt = [o + rng.normal(0, 0.2, o.shape) for o in original]
+    alt = [o + rng.normal(0, 0.2, o.shape) for o in original]
+    masks = [np.ones((8, 8), bool)] * 2
+    share = lambda renders: mode_share(renders, gt, [alt], original, masks)  # noqa: E731
+    assert share(gt) == pytest.approx(1.0) and share(alt) == pytest.approx(0.0, abs=1e-12)
+    assert share([(g + a) / 2 for g, a in zip(gt, alt)]) == pytest.approx(0.5)
+    assert share([o + 0.3 * (a - o) + 0.6 * (g - o) for o, g, a in zip(original, gt, alt)]) == pytest.approx(2 / 3)
+    assert np.isnan(share(original))                             # no edit: no mode
+    assert np.isnan(mode_share(gt, gt, [alt], original, [np.zeros((8, 8), bool)] * 2))
