@@ -68,7 +68,7 @@ def gt_share(renders, original, gt, alt, mask) -> float:
 def test_mode_lock_in_traps_the_baseline_only_with_lock_in(small, lock_in):
     """IN2N (single field, no SA, no CCI) on the snow edit, whose alternative mode is grey snow: with lock-in
     every seed ends mixed or in the grey mode (ground-truth share < 0.6; measured 0.37-0.45), without it every
-    seed ends near the ground truth (measured 0.77-0.81). The share is the mean over the last two probes."""
+    seed ends near the ground truth (measured 0.75-0.81). The share is the mean over the last two probes."""
     modes = _modes(small)
     shares, alt_calls = [], []
     for seed in LOCK_IN_SEEDS:
