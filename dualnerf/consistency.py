@@ -73,9 +73,10 @@ def flagging_quality(updates: list[dict]) -> dict:
 
     A call is *flagged* when its S is below the mean S of the training views at that update
     (`score_ratio` < 1: eq. 10 gives it a weight below 1). precision = failed among flagged, recall =
-    flagged among failed; auc = P(S_failed < S_ok) over all (failed, ok) pairs (ties count 1/2): 0.5 is
-    chance, 1 a perfect ranking. Scores are logged whenever an encoder is given, so rows without CCI have
-    them too. Calls without a score or without a failure flag (a real editor) are left out.
+    flagged among failed (flagged_failed: the true positives); auc = P(S_failed < S_ok) over all (failed,
+    ok) pairs (ties count 1/2): 0.5 is chance, 1 a perfect ranking. Scores are logged whenever an encoder
+    is given, so rows without CCI have them too. Calls without a score or without a failure flag (a real
+    editor) are left out.
     """
     rows = [(float(u["score_ratio"]), float(u["score"]), bool(u["editor"]["failed"])) for u in updates
             if u.get("score_ratio") is not None and isinstance(u.get("editor"), dict)
@@ -91,6 +92,6 @@ def flagging_quality(updates: list[dict]) -> dict:
         less = (bad_scores[:, None] < ok_scores[None]).mean()
         ties = (bad_scores[:, None] == ok_scores[None]).mean()
         auc = float(less + 0.5 * ties)
-    return {"calls": n, "failed": len(failed), "flagged": len(flagged),
+    return {"calls": n, "failed": len(failed), "flagged": len(flagged), "flagged_failed": hits,
             "precision": hits / len(flagged) if flagged else None,
             "recall": hits / len(failed) if failed else None, "auc": auc}

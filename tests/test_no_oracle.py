@@ -71,7 +71,8 @@ def _update(score, ratio, failed):
 
 def test_flagging_quality_closed_forms():
     perfect = [_update(0.2, 0.5, True), _update(0.9, 1.2, False), _update(0.8, 1.1, False)]
-    assert flagging_quality(perfect) == {"calls": 3, "failed": 1, "flagged": 1, "precision": 1.0, "recall": 1.0,
+    assert flagging_quality(perfect) == {"calls": 3, "failed": 1, "flagged": 1, "flagged_failed": 1,
+                                         "precision": 1.0, "recall": 1.0,
                                          "auc": 1.0}
     inverted = [_update(0.9, 1.2, True), _update(0.2, 0.5, False)]
     q = flagging_quality(inverted)
