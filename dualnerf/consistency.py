@@ -65,3 +65,33 @@ class ConsistencyCache:
     @classmethod
     def from_state_dict(cls, state: dict) -> ConsistencyCache:
         return cls(scores=np.asarray(state["scores"], dtype=np.float64))
+
+
+def flagging_quality(updates: list[dict]) -> dict:
+    """How well the consistency score flags the editor's failed calls, from the edit stage's update records
+    (updates.jsonl lines with `score_ratio` and the editor's `failed` flag).
+
+    A call is *flagged* when its S is below the mean S of the training views at that update
+    (`score_ratio` < 1: eq. 10 gives it a weight below 1). precision = failed among flagged, recall =
+    flagged among failed (flagged_failed: the true positives); auc = P(S_failed < S_ok) over all (failed,
+    ok) pairs (ties count 1/2): 0.5 is chance, 1 a perfect ranking. Scores are logged whenever an encoder
+    is given, so rows without CCI have them too. Calls without a score or without a failure flag (a real
+    editor) are left out.
+    """
+    rows = [(float(u["score_ratio"]), float(u["score"]), bool(u["editor"]["failed"])) for u in updates
+            if u.get("score_ratio") is not None and isinstance(u.get("editor"), dict)
+            and u["editor"].get("failed") is not None]
+    n = len(rows)
+    failed = [r for r in rows if r[2]]
+    flagged = [r for r in rows if r[0] < 1.0]
+    hits = sum(1 for r in flagged if r[2])
+    ok_scores = np.array([r[1] for r in rows if not r[2]])
+    bad_scores = np.array([r[1] for r in failed])
+    auc = None
+    if len(ok_scores) and len(bad_scores):
+        less = (bad_scores[:, None] < ok_scores[None]).mean()
+        ties = (bad_scores[:, None] == ok_scores[None]).mean()
+        auc = float(less + 0.5 * ties)
+    return {"calls": n, "failed": len(failed), "flagged": len(flagged), "flagged_failed": hits,
+            "precision": hits / len(flagged) if flagged else None,
+            "recall": hits / len(failed) if failed else None, "auc": auc}

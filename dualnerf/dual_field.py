@@ -27,7 +27,9 @@ f_D has to learn only the *change* an edit asks for, and a small w (0.1) can sti
 f_D can represent, because h = h_S + w * (h_D - h_S) reaches h_S + delta once f_D moves by delta / w. A
 randomly initialised f_D would instead inject w * (noise) into every feature and have to relearn the
 scene's geometry. Since Adam moves parameters by ~lr per step regardless of gradient scale, the fused
-features move ~w times slower than f_D's own: the edit stage may scale f_D's learning rate by 1 / w_max.
+features move ~w times slower than f_D's own: that is the anchor of Sec. 4.1 at the paper's (IN2N's)
+learning rate. The edit stage's `dual_lr_scale` variant scales f_D's learning rate by 1 / w_max and so
+removes it (off by default).
 
 Single-field mode (Instruct-NeRF2NeRF baseline): `make_edit_model(f_S, "single")` returns a trainable
 copy of f_S; it is trained and rendered by the same RayTrainer / render_view with blend=None.

@@ -19,8 +19,10 @@ Design decisions (documented here because the paper leaves them open):
     ("gamma = 0 is the original scene, gamma = 1 the latest model") for the baseline too.
   - CCI of views not edited yet: they train on their original image I, so S = S(I | I, y) =
     cos01(E_I(I), E_T(y)) (eq. 9 with I' = I); see dualnerf.consistency.
-  - f_D's learning rate is lr / w_max_color (`dual_lr_scale`): fused features move w times slower than
-    f_D's own, so this lets DF and the baseline edit at comparable speed (see dualnerf.dual_field).
+  - f_D's learning rate is the baseline's (the paper: "other hyperparameters follow the settings in
+    [IN2N]"), so f_S's anchor works as the paper has it: fused features move ~w times slower than f_D's own.
+    `dual_lr_scale` (off by default; a variant, not the paper's method) trains f_D at lr / w_max_color
+    instead, which undoes that slowness, since Adam's step does not depend on the gradient's scale.
   - The consistency score S is computed and logged at every update whenever an encoder is given, also with
     CCI off, so the ablation can measure what CCI would have done; only `consistency` decides the weights.
   - Loss: RGB (eq. 3, CCI-weighted by eq. 10) plus, with lpips_weight > 0, lpips_weight x LPIPS on
@@ -68,7 +70,7 @@ class IDUConfig:
     edit_count: int = 1                 # views updated per dataset update (IN2N)
     rays_per_batch: int = 4096
     learning_rate: float = 1e-2
-    dual_lr_scale: bool = True          # f_D's lr = learning_rate / w_max_color (see module docstring)
+    dual_lr_scale: bool = False         # True: f_D's lr = learning_rate / w_max_color (a variant; docstring)
     blend: BlendSchedule = field(default_factory=BlendSchedule)
     annealing_config: AnnealingConfig = field(default_factory=AnnealingConfig)
     seed: int = 0
@@ -213,12 +215,17 @@ class IterativeDatasetUpdate:
                 score = float(consistency_score(feature, self._original_features[view], self._text_feature))
                 self.scores.update(view, score)
             weights = self.view_weights()
+            # S relative to the mean over the training views: < 1 is a call CCI would down-weight (the
+            # flag whose precision and recall at the editor's failed calls the report measures).
+            ratio = None if score is None else float(consistency_weights(self.scores.scores[self.train_views])[
+                self.train_views.index(view)])
             entry = {"iteration": iteration, "view": view, "name": self.dataset.names[view],
                      "temperature": annealing_temperature(iteration, cfg.annealing_config.initial_temperature),
                      "gamma": None if draw is None else draw.retreat_factor,
                      "acceptance_probability": None if draw is None else draw.acceptance_probability,
                      "accepted": None if draw is None else draw.accepted, "render_retreat": gamma,
-                     "score": score, "weight": None if weights is None else float(weights[view]),
+                     "score": score, "score_ratio": ratio,
+                     "weight": None if weights is None else float(weights[view]),
                      "editor_seed": seed, "editor": dict(getattr(self.editor, "last_details", {}) or {})}
             self.updates.append(entry)
         if self.scores is not None:

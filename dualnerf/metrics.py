@@ -56,6 +56,9 @@ METRICS: dict[str, MetricInfo] = {
         "SSIM_bg", True, False, "SSIM outside the edit mask vs the original views"),
     "gt_psnr_inside": MetricInfo("PSNR_in", True, False, "PSNR inside the edit mask vs the GT edit"),
     "gt_ssim_inside": MetricInfo("SSIM_in", True, False, "SSIM inside the edit mask vs the GT edit"),
+    "gt_mode_share": MetricInfo(
+        "Mode_gt", True, False, "share of the in-region change that went to the ground-truth mode rather than "
+        "the edit's alternative modes (1: ground truth, 0: an alternative, ~0.5: mixed)"),
     "lpips_edited_vs_original": MetricInfo(
         "LPIPS", False, False, "LPIPS between original and edited path renders", uses_lpips=True),
     "lpips_background": MetricInfo(
@@ -254,6 +257,34 @@ def ground_truth_metrics(edited_renders, gt_edits, masks, original_views) -> dic
         "gt_psnr_inside": mean_over_views(vs_gt, psnr, masks),
         "gt_ssim_inside": mean_over_views(vs_gt, ssim, masks),
     }
+
+
+MODE_SHARE_MIN_CHANGE = 0.1       # below this much of an edit (in coefficient units) the mode is undefined
+
+
+def mode_share(edited_renders, gt_edits, mode_edits, original_views, masks) -> float:
+    """Which mode the edited renders are in: the change render - original inside `masks` (the union of the
+    modes' regions), fitted by least squares over all views as a (gt - original) + sum_k b_k (mode_k -
+    original), and a+ / (a+ + sum_k b_k+) with x+ = max(x, 0). 1: the ground-truth mode, 0: an alternative,
+    in between: mixed. nan when a+ + sum b_k+ < MODE_SHARE_MIN_CHANGE (too little edit to tell, e.g. the
+    unedited scene). `mode_edits[k]` holds mode k's image per view; images in [0, 255] or [0, 1] alike."""
+    n = len(edited_renders)
+    if not (n and len(gt_edits) == n and len(original_views) == n and len(masks) == n
+            and all(len(m) == n for m in mode_edits) and mode_edits):
+        raise MetricInputError("mode_share needs per view a render, a GT edit, an original, a mask and every "
+                               "alternative mode's image.")
+    f = lambda images: [np.asarray(x, np.float64) / (255.0 if np.asarray(x).dtype == np.uint8 else 1.0)
+                        for x in images]
+    renders, gts, originals = f(edited_renders), f(gt_edits), f(original_views)
+    modes = [f(m) for m in mode_edits]
+    sel = [np.asarray(m, bool) for m in masks]
+    if not any(m.any() for m in sel):
+        return float("nan")
+    column = lambda images: np.concatenate([(x - o)[m].ravel() for x, o, m in zip(images, originals, sel)])
+    basis = np.stack([column(gts)] + [column(m) for m in modes], axis=1)
+    coefficients = np.maximum(np.linalg.lstsq(basis, column(renders), rcond=None)[0], 0.0)
+    total = float(coefficients.sum())
+    return float(coefficients[0] / total) if total >= MODE_SHARE_MIN_CHANGE else float("nan")
 
 
 def clip_metrics(edited, original, target_text=None, source_text=None) -> dict[str, float]:

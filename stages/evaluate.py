@@ -64,8 +64,12 @@ class EvaluateParams:
 
 class EvaluateStage(TorchNumerics, Stage):
     name = "evaluate"
-    version = "5"                       # 3: LPIPS metrics; path.mp4 is H.264 (was mp4v); 4: packed renders;
-                                        # 5: thread-count independent renders, metrics and video
+    # 3: LPIPS metrics; path.mp4 is H.264 (was mp4v); 4: packed renders; 5: thread-count independent
+    # renders, metrics and video; 6: the proxy's target caption from the edit's specification (caption
+    # images of the training views) instead of the ground-truth edit, metrics.json's `sees_ground_truth`
+    # list, gt_mode_share (which mode the edit ended in), and the fixed views rendered with their own
+    # near/far (were the scene-wide range)
+    version = "6"
     Params = EvaluateParams
     # "original": the evaluate result of the unedited scene (same dataset and fit). Edited rows reuse its
     # f_S renders instead of rendering the same camera path again (the workflow passes it).
@@ -93,6 +97,7 @@ class EvaluateStage(TorchNumerics, Stage):
             ground_truth_metrics,
             json_value,
             mean_over_views,
+            mode_share,
             ssim,
         )
         from dualnerf.model import load_model, saved_blend
@@ -140,10 +145,14 @@ class EvaluateStage(TorchNumerics, Stage):
         path_intrinsics = dataset.intrinsics[ref] * np.array([path_width / dataset.width,
                                                               path_height / dataset.height] * 2)
 
-        def render(model, model_blend, c2w, intrinsics, width, height):
+        def render(model, model_blend, c2w, intrinsics, width, height, bounds=None):
             from dualnerf.rendering import render_view
 
-            image = render_view(model, c2w, intrinsics, width, height, near, far, blend=model_blend,
+            # Path frames: between the training views' smallest near and largest far. A fixed (dataset)
+            # view: its own near/far, as training and the convergence probe render it (docs/ablation.md:
+            # the scene-wide range cost ~0.9 dB in-mask on campsite, a sampling artefact, not the edit).
+            lo, hi = bounds if bounds is not None else (near, far)
+            image = render_view(model, c2w, intrinsics, width, height, lo, hi, blend=model_blend,
                                 chunk=p.chunk)
             return (image.numpy() * 255.0 + 0.5).astype(np.uint8)
 
@@ -159,12 +168,12 @@ class EvaluateStage(TorchNumerics, Stage):
             ctx.log.info("reusing the original scene's renders from %s", ctx.inputs["original"])
         models = [] if reused is not None else [(layout.ORIGINAL, static, None)]
         models += [] if edited is None else [(layout.EDITED, edited, blend)]
-        jobs = []                             # (kind, group, model, blend, c2w, intrinsics, width, height)
+        jobs = []                             # (kind, group, model, blend, c2w, intrinsics, width, height[, (near, far)])
         for kind, model, model_blend in models:
             jobs += [(kind, layout.FRAMES, model, model_blend, c2w, path_intrinsics, path_width, path_height)
                      for c2w in path.c2w]
             jobs += [(kind, layout.VIEWS, model, model_blend, dataset.c2w[i], dataset.intrinsics[i], dataset.width,
-                      dataset.height) for i in view_ids]
+                      dataset.height, (float(dataset.near[i]), float(dataset.far[i]))) for i in view_ids]
         rendered, _ = resume_images(ctx, len(jobs), sizes=[job[6:8] for job in jobs],
                                     restart="rendering from the start")
         if rendered:
@@ -211,6 +220,12 @@ class EvaluateStage(TorchNumerics, Stage):
             gt_images, gt_masks = gt
             values.update(ground_truth_metrics(views["edited"], gt_images, gt_masks,
                                                [dataset.images[i] for i in view_ids]))
+            modes = _mode_ground_truth(data_dir, p.edit_id, dataset, view_ids)
+            if modes is not None:
+                mode_images, region = modes
+                values["gt_mode_share"] = mode_share(views["edited"], gt_images, mode_images,
+                                                     [dataset.images[i] for i in view_ids],
+                                                     [g | r for g, r in zip(gt_masks, region)])
             for name, image, mask in zip(view_names, gt_images, gt_masks):
                 write_png(layout.view_path(out, layout.GT_EDIT, name), image)
                 write_png(layout.view_path(out, layout.GT_MASK, name),
@@ -252,6 +267,9 @@ class EvaluateStage(TorchNumerics, Stage):
             "camera_path": {**path.describe(), "key_frames": key_frames},
             "views": {"names": view_names, "split": view_split},
             "notes": notes, "metrics": metrics_doc,
+            # Metrics computed with the ground truth: the gt_* metrics by definition; proxy C_t2i when its
+            # target caption had to come from the ground-truth edit (no image-space reading of the edit).
+            "sees_ground_truth": sees_ground_truth(values, encoder.identity),
         }
         (out / layout.METRICS).write_text(json.dumps(doc, indent=1))
         ctx.record(encoder=doc["encoder"], encoder_tag=encoder_tag, editor=editor,
@@ -261,6 +279,16 @@ class EvaluateStage(TorchNumerics, Stage):
         what = "per-frame baseline" if per_frame is not None else "edited" if edited is not None else "original scene"
         ctx.log.info("evaluate (%s encoder %s): %s", what,
                      encoder_tag, summary)
+
+
+def sees_ground_truth(values: dict, encoder_identity: dict) -> list[str]:
+    """The metrics among `values` that the ground-truth edit entered (metrics.json `sees_ground_truth`)."""
+    from dualnerf.encoders.vocabulary import GROUND_TRUTH
+
+    names = [name for name in values if name.startswith("gt_")]
+    if encoder_identity.get("vocabulary_source") == GROUND_TRUTH and "clip_text_image_direction" in values:
+        names.append("clip_text_image_direction")
+    return names
 
 
 def _original_renders(folder: Path, path_c2w, path_size, view_names) -> tuple[list, list]:
@@ -305,10 +333,28 @@ def _ground_truth(data_dir: Path, edit_id: str, dataset, view_ids):
     return [f[0] for f in found], [f[1] for f in found]
 
 
+def _mode_ground_truth(data_dir: Path, edit_id: str, dataset, view_ids):
+    """([mode k's image per view] per alternative mode, the modes' masks' union per view) at the fixed views,
+    or None when the scene lists no alternative modes for the edit (or lacks their views)."""
+    from dualnerf.scenes.spec import load_gt_edit, load_scene_spec, mode_edit_id
+
+    if not edit_id or not (data_dir / "scene.toml").is_file():
+        return None
+    modes = load_scene_spec(data_dir).edit(edit_id).modes
+    images, region = [], [np.zeros(dataset.images[i].shape[:2], bool) for i in view_ids]
+    for mode in modes:
+        found = [load_gt_edit(data_dir, mode_edit_id(edit_id, mode), dataset.names[i]) for i in view_ids]
+        if any(f is None or f[0].shape != dataset.images[i].shape for f, i in zip(found, view_ids)):
+            return None
+        images.append([f[0] for f in found])
+        region = [r | f[1] for r, f in zip(region, found)]
+    return (images, region) if images else None
+
+
 def _encoder(p: EvaluateParams, data_dir: Path, dataset, train, captions: dict):
     """The image-text encoder, its tag for metric entries, and why C_t2i cannot be computed (or None)."""
-    from dualnerf.encoders import load_encoder
-    from dualnerf.scenes.spec import load_gt_edit
+    from dualnerf.encoders import EncoderError, load_encoder
+    from dualnerf.scenes.spec import SceneSpecError, load_scene_spec
 
     missing_captions = not captions["source_caption"] or not captions["target_caption"]
     if p.encoder == "clip":
@@ -320,26 +366,28 @@ def _encoder(p: EvaluateParams, data_dir: Path, dataset, train, captions: dict):
         return encoder, tag, note
     if p.encoder != "proxy":
         load_encoder(p.encoder)           # raises the encoder library's error naming the valid kinds
-    # The proxy defines a caption by images: the source caption by the original training views, the
-    # target caption by the ground-truth edited views (procedural scenes only).
-    vocabulary = {}
-    note = None
+    # The proxy defines a caption by images: the source caption by the original TRAINING views, the target
+    # caption by caption images made from them and the edit's specification (dualnerf.encoders.vocabulary;
+    # the ground-truth edited training views only where the specification has no image-space reading,
+    # and the encoder's identity then says it sees the ground truth). Never the evaluated views.
+    from dualnerf.encoders.vocabulary import proxy_vocabulary_with_source
+
     if missing_captions:
         note = "no source/target caption given (set evaluate.source_caption/target_caption)"
-    else:
-        gt_edits = []
-        if p.edit_id:
-            for i in train:
-                found = load_gt_edit(data_dir, p.edit_id, dataset.names[i])
-                if found is not None:
-                    gt_edits.append(found[0])
-        if gt_edits:
-            vocabulary = {captions["source_caption"]: dataset.images[train],
-                          captions["target_caption"]: np.stack(gt_edits)}
-        else:
-            note = ("the proxy encoder (NOT CLIP) defines caption embeddings from ground-truth edited views, "
-                    "which this scene lacks; use encoder 'clip' for C_t2i on real scenes.")
-    return load_encoder("proxy", vocabulary=vocabulary), "proxy", note
+        return load_encoder("proxy", vocabulary={}), "proxy", note
+    note, vocabulary, source = None, {}, ""
+    names = [dataset.names[i] for i in train]
+    try:
+        if not p.edit_id or not (data_dir / "scene.toml").is_file():
+            raise EncoderError("no scene edit")
+        defined, source = proxy_vocabulary_with_source(data_dir, p.edit_id, names, dataset.images[train])
+        edit = load_scene_spec(data_dir).edit(p.edit_id)
+        vocabulary = {captions["source_caption"]: defined[edit.source_caption],
+                      captions["target_caption"]: defined[edit.target_caption]}
+    except (EncoderError, SceneSpecError):
+        note = ("the proxy encoder (NOT CLIP) defines caption embeddings from a procedural scene edit's "
+                "specification or ground truth, which this scene lacks; use encoder 'clip' for C_t2i on real scenes.")
+    return load_encoder("proxy", vocabulary=vocabulary, vocabulary_source=source), "proxy", note
 
 
 def _encode(encoder, frames):

@@ -25,8 +25,10 @@ class SceneParams:
 class SceneStage(NumpyNumerics, Stage):
     name = "scene"
     # 2: campsite gained the geometry edit 'canoe' (gt/edits/canoe) and scene.toml records each edit's
-    # kind; the views and the earlier edits render byte-identically.
-    version = "2"
+    # kind; the views and the earlier edits render byte-identically. 3: every edit's alternative modes
+    # (gt/edits/<edit>.<mode>/, listed as `modes` in scene.toml) for the emulator's mode lock-in; the
+    # views and the ground-truth edits render byte-identically.
+    version = "3"
     Params = SceneParams
     resources = Resources(cpus=2, gpus=0, memory_gb=2)
     nonsemantic_params = frozenset({"workers"})

@@ -80,6 +80,29 @@ def test_stage_outputs_records_and_untouched_inputs(small, tmp_path):
     first = updates[0]["name"]
     stored = cv2.imread(str(out / "edited" / f"{Path(first).stem}.png"))[..., ::-1]
     assert np.abs(stored.astype(int) - dataset.images[dataset.names.index(first)].astype(int)).mean() > 5
+    # Failure modes and the no-oracle record: the emulator's knobs come from the emulator_* parameters,
+    # each update records whether the call failed and which mode it drew, and the proxy's captions came
+    # from the edit's specification.
+    from dualnerf.encoders.vocabulary import SPEC
+
+    config = ctx.records["editor"]["config"]
+    assert config["lock_in"] is True and config["background_cast"] == 0.05 and config["failure_rate"] == 0.15
+    assert ctx.records["editor"]["modes"] == ["snow", "grey_snow"]
+    assert all(isinstance(u["editor"]["failed"], bool) and u["editor"]["mode"] in (0, 1) for u in updates)
+    assert all(u["score_ratio"] is not None for u in updates)
+    assert summary["encoder"]["vocabulary_source"] == SPEC and summary["params"]["dual_lr_scale"] is False
+
+
+def test_emulator_parameters_reach_the_emulator(small, tmp_path):
+    data_dir, fit_dir, _, _ = small
+    ctx = run_stage(data_dir, fit_dir, tmp_path, **{**FAST, "iterations": 5, "lpips_weight": 0.0,
+                                                    "emulator_lock_in": False, "emulator_background_cast": 0.0,
+                                                    "emulator_failure_rate": 1.0})
+    config = ctx.records["editor"]["config"]
+    assert (config["lock_in"], config["background_cast"], config["failure_rate"]) == (False, 0.0, 1.0)
+    assert ctx.records["editor"]["modes"] == ["snow"]
+    updates = [json.loads(line) for line in (ctx.out_dir / "updates.jsonl").read_text().splitlines()]
+    assert all(u["editor"]["failed"] and u["editor"]["mode"] == 0 for u in updates)
 
 
 @pytest.mark.parametrize("params, message", [
@@ -92,6 +115,7 @@ def test_stage_outputs_records_and_untouched_inputs(small, tmp_path):
     ({"instruction": "make it pink"}, "can only emulate edit 'snow'"),
     ({"lpips_net": "squeeze"}, "lpips_net must be 'alex' or 'vgg'"),
     ({"update_precision": "fp16"}, "'update_precision' must be 'fp32' or 'bf16'"),
+    ({"emulator_mode_prior": 1.5}, "mode_prior must be in"),
     ({"patch_size": 32}, "more than rays_per_batch"),
     ({"device": "cuda:0"}, "no CUDA device") if not torch.cuda.is_available() else ({}, None),
 ])

@@ -7,7 +7,8 @@ from dualnerf.editors.emulator import EmulatedView, EmulatorConfig, InstructPix2
 
 INSTRUCTION = "make it snowy"
 QUIET = {"noise_range": (1.0, 1.0), "strength_jitter": 0.0, "tint_jitter": 0.0, "spatial_jitter": 0.0,
-             "background_drift": 0.0, "background_blur": 0.0, "failure_rate": 0.0, "mask_feather": 0.0}
+         "background_drift": 0.0, "background_blur": 0.0, "failure_rate": 0.0, "mask_feather": 0.0,
+         "background_cast": 0.0, "lock_in": False}
 
 
 def _view(size=32, seed=0):
@@ -129,3 +130,76 @@ def test_clear_errors():
         emu.edit(view.original, view.gt_edit, INSTRUCTION, 0, 0)
     with pytest.raises(EditorError, match="failure_rate"):
         EmulatorConfig(failure_rate=2.0)
+
+
+def _two_mode_view(size=32, cast_weight=0.5):
+    """_view() with an alternative mode: the lower half turns blue-grey instead of white."""
+    view = _view(size)
+    alt = _f(view.original).copy()
+    alt[view.mask] = np.array([0.45, 0.55, 0.85]) + 0.1 * alt[view.mask]
+    u8 = (alt * 255 + 0.5).astype(np.uint8)
+    return EmulatedView(view.original, view.gt_edit, view.mask, modes=((u8, view.mask),),
+                        cast_weight=cast_weight)
+
+
+def test_lock_in_off_and_no_cast_give_emulator_version_1_outputs():
+    # sha256 of 40 outputs of emulator version 1 (git 1e9c17d) on this view: the new draws come after
+    # the old ones, so with both new knobs off every output is the same bit for bit.
+    import hashlib
+
+    view = _view()
+    emu = InstructPix2PixEmulator([view], INSTRUCTION, "snow", EmulatorConfig(lock_in=False, background_cast=0.0))
+    digest = hashlib.sha256()
+    render = np.roll(view.gt_edit, 3, axis=1)
+    for seed in range(40):
+        digest.update(emu.edit(render, view.original, INSTRUCTION, seed, 7).tobytes())
+    assert digest.hexdigest() == "473dd55b51323826f78f64500ce74a55297ce1ec1acee1de41436e9e18e59259"
+
+
+def test_lock_in_follows_the_mode_the_render_shows_at_low_noise_and_the_prior_at_high_noise():
+    view = _two_mode_view()
+    gt, alt = view.gt_edit, view.modes[0][0]
+    half_alt = ((_f(view.original) + _f(alt)) / 2 * 255 + 0.5).astype(np.uint8)
+
+    def modes(render, noise, **knobs):
+        emu = _emulator(view, **{"lock_in": True, "noise_range": (noise, noise), **knobs})
+        drawn = []
+        for seed in range(300):
+            emu.edit(render, view.original, INSTRUCTION, seed, 0)
+            drawn.append(emu.last_details["mode"])
+        return np.array(drawn)
+
+    prior = 2 / 3
+    # Low noise: the render decides, even for a render only half-way to the wrong mode.
+    assert modes(alt, 0.05).mean() > 0.9 and modes(half_alt, 0.05).mean() > 0.85
+    assert modes(gt, 0.05).mean() < 0.03
+    # The unedited render shows neither mode (q uniform): at low noise, where the render is kept, half
+    # and half; at high noise the prior.
+    assert abs((modes(view.original, 0.05) == 0).mean() - 0.5) < 0.1
+    # High noise: the render hardly matters, the prior does.
+    high = modes(alt, 0.98)
+    assert abs((high == 0).mean() - prior) < 0.12
+    # Off: the ground truth is the only mode, whatever the render.
+    assert (modes(alt, 0.05, lock_in=False) == 0).all()
+    # The drawn mode is what the output shows: at noise 1 the output is that mode's image.
+    emu = _emulator(view, lock_in=True)
+    for seed in range(20):
+        out = emu.edit(alt, view.original, INSTRUCTION, seed, 0)
+        expect = alt if emu.last_details["mode"] == 1 else gt
+        assert np.abs(out.astype(int) - expect.astype(int)).max() <= 1
+
+
+def test_systematic_background_cast_does_not_average_out():
+    bg_of = lambda v: ~v.mask
+    for weight in (0.0, 1.0):
+        view = _two_mode_view(cast_weight=weight)
+        emu = _emulator(view, background_cast=0.05, background_drift=0.04)
+        shifts = np.array([(_f(emu.edit(view.original, view.original, INSTRUCTION, s, 0))
+                            - _f(view.original))[bg_of(view)].mean(0) for s in range(300)])
+        mean = shifts.mean(0)
+        if weight == 0.0:
+            assert np.abs(mean).max() < 0.01         # the zero-mean drift alone averages out
+        else:
+            # red up, blue down, by ~5% of the background's colour: a bias averaging cannot remove
+            colour = _f(view.original)[bg_of(view)].mean(0)
+            np.testing.assert_allclose(mean, 0.05 * np.array([1.0, 0.3, -0.8]) * colour, atol=0.01)

@@ -89,8 +89,11 @@ def test_sfm_on_campsite_meets_pose_and_focal_accuracy(tmp_path):
     error, focal = pose_errors(scene, tmp_path / "ds")
     assert error <= 0.01, f"camera-centre error {error:.4f} of the radius"
     assert abs(focal) <= 0.01, f"focal error {focal:.4f}"
-    # Preprocess carries every ground-truth edit the scene renders (the library's list for campsite).
-    assert sorted(report["gt_edits"]) == sorted(e.id for e in BUILDERS["campsite"][1])
+    # Preprocess carries every ground-truth edit the scene renders (the library's list for campsite) and
+    # every edit's alternative modes (gt/edits/<edit>.<mode>/).
+    edits = BUILDERS["campsite"][1]
+    assert sorted(report["gt_edits"]) == sorted([e.id for e in edits]
+                                                + [f"{e.id}.{m.id}" for e in edits for m in e.modes])
     assert {"autumn", "blue_tent", "canoe", "snow"} <= set(report["gt_edits"])
 
 

@@ -55,10 +55,11 @@ def test_report_shows_mean_std_n_and_paired_intervals(tmp_path):
     assert "paired" not in base                                     # the reference itself
     same = rows[("same", ())]["metrics"][METRIC]["paired"]
     assert (same["mean"], same["ci_low"], same["ci_high"], same["n_pairs"]) == (0.0, 0.0, 0.0, 6)
-    assert same["ci_contains_zero"] is True
+    assert same["ci_contains_zero"] is True and same["ci_excludes_zero"] is False
+    assert (same["t_ci_low"], same["t_ci_high"]) == (0.0, 0.0)
     shifted = rows[("shifted", ())]["metrics"][METRIC]["paired"]
     assert shifted["ci_low"] == pytest.approx(0.05, abs=1e-12) and shifted["ci_high"] == pytest.approx(0.05, abs=1e-12)
-    assert shifted["ci_contains_zero"] is False
+    assert shifted["ci_contains_zero"] is False and shifted["ci_excludes_zero"] is True
     # Pairing uses matching units only: 'room only' has 3 units, the baseline's 3 tiny units are unpaired.
     room = rows[("room only", ())]["metrics"][METRIC]["paired"]
     assert room["n_pairs"] == 3 and room["mean"] == pytest.approx(1.0)
@@ -73,18 +74,21 @@ def test_report_shows_mean_std_n_and_paired_intervals(tmp_path):
     assert "| baseline | ✗ | ✗ | ✗ | 0, 1, 2 | 6 | " in markdown
     assert f"{0.15 + noise.mean():.4f} ± {noise.std(ddof=1):.4f}" in markdown
     assert "## Difference to `baseline`" in markdown
-    assert "| same | 6 | +0.0000 [+0.0000, +0.0000] † |" in markdown
-    assert "| shifted | 6 | +0.0500 [+0.0500, +0.0500] |" in markdown
+    assert "| same | 6 | +0.0000 [+0.0000, +0.0000] incl. 0 |" in markdown
+    assert "| shifted | 6 | +0.0500 [+0.0500, +0.0500] excl. 0 |" in markdown
     assert "room only: 0 unit(s) without a reference run, 3 reference unit(s) it did not run" in markdown
     assert "| sweep [edit.w_max_color=0.1] |" in markdown
     with open(out / "table.csv") as handle:
         records = {(r["variant"], r["params"]): r for r in csv.DictReader(handle)}
     assert float(records[("shifted", "")][f"{METRIC}_ci_low"]) == pytest.approx(0.05)
     assert records[("same", "")][f"{METRIC}_ci_contains_zero"] == "1"
+    assert records[("same", "")][f"{METRIC}_ci_excludes_zero"] == "0"
+    assert records[("shifted", "")][f"{METRIC}_ci_excludes_zero"] == "1"
     assert records[("baseline", "")][f"{METRIC}_diff"] == "" and records[("baseline", "")][f"{METRIC}_n"] == "6"
 
     page = (out / "index.html").read_text()
     assert "Difference to baseline" in page and "class='ns'" in page and "percentile bootstrap" in page
+    assert "t interval" in page and "excl. 0" in page and "incl. 0" in page
 
 
 def test_per_scene_tables_beside_the_aggregate(tmp_path):

@@ -3,13 +3,22 @@ are exactly the changed pixels, geometry edits that change depth and occlusion e
 does, camera spacing, determinism, the `scene list` command and the emulator on every edit."""
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 
 import numpy as np
 import pytest
 
 from dualnerf.editors.emulator import EmulatorConfig, InstructPix2PixEmulator
-from dualnerf.scenes import SCENES, generate_scene, load_gt_edit, load_scene_spec, scene_cameras, scene_config
+from dualnerf.scenes import (
+    SCENES,
+    generate_scene,
+    load_gt_edit,
+    load_scene_spec,
+    mode_edit_id,
+    scene_cameras,
+    scene_config,
+)
 from dualnerf.scenes.cameras import neighbour_angles_degrees
 from dualnerf.scenes.generate import edit_ground_truth, render_view
 from dualnerf.scenes.library import BUILDERS, EDIT_KINDS
@@ -169,7 +178,8 @@ def test_emulator_works_on_every_edit_of_every_scene(tmp_path):
     import cv2
 
     quiet = EmulatorConfig(noise_range=(1.0, 1.0), strength_jitter=0.0, tint_jitter=0.0, spatial_jitter=0.0,
-                           background_drift=0.0, background_blur=0.0, failure_rate=0.0, mask_feather=0.0)
+                           background_drift=0.0, background_blur=0.0, failure_rate=0.0, mask_feather=0.0,
+                           lock_in=False, background_cast=0.0)
     for name in SCENES:
         folder = generate_scene(name, tmp_path / name, n_views=3, width=48, height=36, supersample=1)
         names = sorted(p.name for p in (folder / "images").iterdir())
@@ -181,10 +191,25 @@ def test_emulator_works_on_every_edit_of_every_scene(tmp_path):
             out = emulator.edit(originals[1], originals[1], e.instruction, seed=0, step=0)
             assert np.abs(out.astype(int) - gt.astype(int)).max() <= 1, f"{name}/{e.id}"
             noisy = InstructPix2PixEmulator.from_scene_folder(folder, e.id, e.instruction, names, originals,
-                                                              EmulatorConfig(failure_rate=0.0))
+                                                              EmulatorConfig(failure_rate=0.0, lock_in=False))
             errors = [np.abs(noisy.edit(originals[1], originals[1], e.instruction, seed=s, step=0).astype(float)
                              - gt)[mask].mean() for s in range(3)]
             assert np.median(errors) < np.abs(originals[1].astype(float) - gt)[mask].mean(), f"{name}/{e.id}"
+            # Every edit has an alternative mode: another appearance of the same edit, in the same region.
+            assert e.modes, f"{name}/{e.id} has no alternative mode"
+            alt, alt_mask = load_gt_edit(folder, mode_edit_id(e.id, e.modes[0]), names[1])
+            assert (alt_mask & mask).sum() >= 0.5 * mask.sum(), f"{name}/{e.id}"
+            assert np.abs(alt.astype(int) - gt.astype(int))[mask].max() > 40, f"{name}/{e.id}"
+            # With lock-in, a quiet call at full noise draws each mode at its prior share.
+            locked = InstructPix2PixEmulator.from_scene_folder(
+                folder, e.id, e.instruction, names, originals, dataclasses.replace(quiet, lock_in=True))
+            drawn = []
+            for seed in range(60):
+                out = locked.edit(alt, originals[1], e.instruction, seed=seed, step=0)
+                drawn.append(locked.last_details["mode"])
+                expect = alt if drawn[-1] == 1 else gt
+                assert np.abs(out.astype(int) - expect.astype(int)).max() <= 1, f"{name}/{e.id}"
+            assert 0.4 < np.mean(np.array(drawn) == 0) < 0.9, f"{name}/{e.id}"
 
 
 def test_scene_list_prints_every_scene_with_views_size_and_edits(capsys):

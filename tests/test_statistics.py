@@ -94,3 +94,31 @@ def test_summary_is_mean_and_sample_std_of_per_seed_means():
     assert (single.mean, single.n, single.n_seeds) == (0.5, 1, 1) and math.isnan(single.std)
     infinite = S.summarize_over_seeds([math.inf, math.inf], [0, 1])
     assert infinite.mean == math.inf and math.isnan(infinite.std)
+
+
+def test_paired_t_interval_and_its_verdict_on_known_data():
+    # d = (1, 2, 3): mean 2, sd 1, t_{0.975,2} = 4.3027 -> 2 ± 4.3027/sqrt(3) = [-0.4842, 4.4842]: includes 0
+    # although every unit is positive (3 units cannot show it at 95%).
+    diff = S.paired_difference(_units([1.0, 2.0, 3.0]), _units([0.0, 0.0, 0.0]))
+    assert diff.t_low == pytest.approx(2 - 4.3027 / math.sqrt(3), abs=1e-4)
+    assert diff.t_high == pytest.approx(2 + 4.3027 / math.sqrt(3), abs=1e-4)
+    assert diff.excludes_zero is False
+    assert diff.contains_zero is False                  # the percentile bootstrap ([1, 3]) is narrower
+    # d = (1.0, 1.1, 0.9, 1.0): mean 1, sd 0.08165, t_{0.975,3} = 3.1824 -> [0.870, 1.130]: excludes 0.
+    tight = S.paired_difference(_units([1.0, 1.1, 0.9, 1.0]), _units([0.0] * 4))
+    assert (tight.t_low, tight.t_high) == pytest.approx((1 - 3.1824 * 0.0816497 / 2, 1 + 3.1824 * 0.0816497 / 2),
+                                                        abs=1e-4)
+    assert tight.excludes_zero is True
+    # Below zero, too; a constant shift has a zero-width interval; one pair has no verdict.
+    assert S.paired_difference(_units([0.0] * 4), _units([1.0, 1.1, 0.9, 1.0])).excludes_zero is True
+    assert S.paired_difference(_units([0.0, 0.0]), _units([0.0, 0.0])).excludes_zero is False
+    assert S.paired_difference(_units([2.0]), _units([1.0])).excludes_zero is None
+
+
+def test_t_quantiles_match_the_tables():
+    # Student's t at 0.975 (printed tables): df 1, 2, 10, 30; the expansion beyond 30: 40, 120, and z.
+    for df, value in ((1, 12.706), (2, 4.303), (10, 2.228), (30, 2.042), (40, 2.021), (120, 1.980)):
+        assert S.t_quantile_975(df) == pytest.approx(value, abs=1e-3)
+    assert S.t_quantile_975(10 ** 6) == pytest.approx(1.960, abs=1e-3)
+    with pytest.raises(ValueError):
+        S.t_quantile_975(0)

@@ -255,3 +255,23 @@ def test_dry_run_prints_the_grid_size_and_every_cell(tmp_path, capsys):
     assert "[20] scene=campsite edit=snow method=DualNeRF seed=1 w_max=0.3 lambda=0.01" in out
     assert out.count("pending") == 3 + 1 + 2 * 20          # scene, preprocess, fit, original; edit+evaluate per cell
     assert not (tmp_path / "cache" / "objects").exists() or not any((tmp_path / "cache" / "objects").iterdir())
+
+
+def test_failure_mode_controls_cross_the_rows_with_lock_in_and_share_the_ablation_cells(tmp_path):
+    """workflows/ablation_failure_modes.toml (issue 29): campsite/snow x 6 rows x lock_in {on, off} x 3
+    seeds (36 edits) + campsite/blue_tent x {IN2N, DF, DualNeRF} x lock_in on x 3 seeds (9); its snow
+    lock_in=True cells are `make ablation`'s cells (same keys)."""
+    wf = load_workflow(WORKFLOWS / "ablation_failure_modes.toml", [NO_USER])
+    edited = [c for c in wf.cells if c.edit is not None]
+    assert len(edited) == 45
+    snow = [c for c in edited if c.edit_id == "snow"]
+    assert len(snow) == 36 and {dict(c.params)["lock_in"] for c in snow} == {True, False}
+    assert all(c.edit.params["emulator_lock_in"] is dict(c.params)["lock_in"] for c in edited)
+    tent = [c for c in edited if c.edit_id == "blue_tent"]
+    assert sorted({c.label for c in tent}) == ["DF", "DF+SA+CCI", "baseline"] and len(tent) == 9
+    assert all(dict(c.params)["lock_in"] is True for c in tent)
+    ablation = load_workflow(WORKFLOWS / "ablation.toml", [NO_USER])
+    keys_f = _keyed(wf, tmp_path)
+    keys_a = _keyed(ablation, tmp_path)
+    on = {keys_f[c.edit].key for c in snow if dict(c.params)["lock_in"]}
+    assert {keys_a[c.edit].key for c in ablation.cells if c.edit is not None} == on

@@ -47,6 +47,10 @@ CASES = [
     ("sweep_blend", ["lambda=[0.02]", "exclude=[]", "scene.supersample=2"]),
     # Added with the workflow (after the move, so recorded from the code that added it).
     ("reconstruct", []),
+    # Issue 29: the failure-mode controls (lock_in axis) and the convergence study; the ablation's cases
+    # re-recorded for its 3 seeds and 2000 edit iterations (a documented key change).
+    ("ablation_failure_modes", []),
+    ("convergence_study", []),
 ]
 
 

@@ -19,10 +19,11 @@ __all__ = ["EDITOR_KINDS", "Editor", "EditorError", "load_editor", "to_float_ima
 
 def load_editor(kind: str, *, instruction: str, model: str | None = None, device: str = "cpu",
                 scene_folder=None, edit_id: str | None = None, names=None, originals=None,
-                emulator_config=None) -> Editor:
+                emulator_config=None, c2w=None) -> Editor:
     """Build an editor. "ip2p" needs `model` (a local diffusers folder or hub id); "synthetic" (the
     InstructPix2Pix EMULATOR) needs the folder with scene.toml + gt/edits/, the edit id, and the training
-    views' names and original images."""
+    views' names and original images (and optionally their cameras `c2w`, for the view-dependent
+    background cast)."""
     if kind == "ip2p":
         from dualnerf.editors.ip2p import IP2P_HUB_ID, InstructPix2PixConfig, InstructPix2PixEditor
 
@@ -34,5 +35,5 @@ def load_editor(kind: str, *, instruction: str, model: str | None = None, device
             raise EditorError("editor 'synthetic' (InstructPix2Pix emulator) needs a scene folder with "
                               "scene.toml and gt/edits/, an edit_id, and the training views.")
         return InstructPix2PixEmulator.from_scene_folder(scene_folder, edit_id, instruction, names, originals,
-                                                         emulator_config or EmulatorConfig())
+                                                         emulator_config or EmulatorConfig(), c2w=c2w)
     raise EditorError(f"unknown editor '{kind}'; choose one of: {', '.join(EDITOR_KINDS)}.")

@@ -21,13 +21,15 @@ __all__ = ["ENCODER_KINDS", "EncoderError", "ImageTextEncoder", "load_encoder"]
 
 
 def load_encoder(kind: str, model_dir: str | Path | None = None,
-                 vocabulary: Mapping[str, np.ndarray] | None = None) -> ImageTextEncoder:
+                 vocabulary: Mapping[str, np.ndarray] | None = None, vocabulary_source: str = ""
+                 ) -> ImageTextEncoder:
     """Build an encoder.
 
     kind "clip": `model_dir` is a folder written by `dualnerf models export-clip` (ONNX files, tokenizer,
     preprocessing config, sha256 manifest, all verified on load); `vocabulary` is ignored.
     kind "proxy": `vocabulary` maps each text the caller will encode to the images that define its
-    embedding (e.g. instruction -> ground-truth edited views); `model_dir` must be empty.
+    embedding (dualnerf.encoders.vocabulary); `vocabulary_source` says where they came from (recorded in
+    the identity); `model_dir` must be empty.
     """
     if kind == "clip":
         if not model_dir:
@@ -40,5 +42,5 @@ def load_encoder(kind: str, model_dir: str | Path | None = None,
     if kind == "proxy":
         from dualnerf.encoders.proxy import ProxyEncoder
 
-        return ProxyEncoder(vocabulary or {})
+        return ProxyEncoder(vocabulary or {}, vocabulary_source)
     raise EncoderError(f"unknown encoder kind '{kind}'; choose one of: {', '.join(ENCODER_KINDS)}.")

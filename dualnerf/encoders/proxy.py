@@ -9,8 +9,10 @@ Image feature (signed, so cosine similarity discriminates; each block is L2-norm
   - texture: standard deviation of L and mean gradient magnitude of L over the 4x4 grid, minus constants
     typical of smooth renders (so blur and noise move the feature in opposite directions)
 Text embedding: a text only has an embedding if the caller's vocabulary defines it by a stack of images
-(e.g. the target caption / instruction <- ground-truth edited views; the source caption <- original
-views); its embedding is the normalised mean of those images' features. Unknown text is an error.
+(dualnerf.encoders.vocabulary: the target caption / instruction <- caption images made from the edit's
+specification; the source caption <- original views); its embedding is the normalised mean of those
+images' features. Unknown text is an error. `vocabulary_source` (in the identity) says where the target
+caption's images came from, so a record shows whether the proxy saw the ground truth.
 """
 from __future__ import annotations
 
@@ -64,8 +66,9 @@ def proxy_image_features(images: np.ndarray) -> np.ndarray:
 class ProxyEncoder:
     """Weight-free proxy encoder (see module docstring); not CLIP."""
 
-    def __init__(self, vocabulary: Mapping[str, np.ndarray]):
+    def __init__(self, vocabulary: Mapping[str, np.ndarray], vocabulary_source: str = ""):
         self._texts: dict[str, np.ndarray] = {}
+        self.vocabulary_source = vocabulary_source
         digest = hashlib.sha256()
         for text in sorted(vocabulary):
             images = np.asarray(vocabulary[text])
@@ -81,7 +84,7 @@ class ProxyEncoder:
     def identity(self) -> dict:
         return {"kind": "proxy", "model": "colour/structure statistics (NOT CLIP)",
                 "feature_version": PROXY_FEATURE_VERSION, "vocabulary": sorted(self._texts),
-                "vocabulary_sha256": self._vocabulary_sha256}
+                "vocabulary_sha256": self._vocabulary_sha256, "vocabulary_source": self.vocabulary_source}
 
     def encode_images(self, images: np.ndarray) -> np.ndarray:
         return proxy_image_features(images)

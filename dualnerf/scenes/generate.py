@@ -10,6 +10,7 @@ import numpy as np
 from dualnerf.scenes.cameras import OPENCV_TO_OPENGL, orbit
 from dualnerf.scenes.library import BUILDERS, SCENES, SceneConfig
 from dualnerf.scenes.render import camera_rays, pattern_fields, retrace_edit, shade, to_image, trace
+from dualnerf.scenes.spec import mode_edit_id
 
 GENERATOR = "dualnerf.scenes procedural ray caster (synthetic scene, not a photograph)"
 POINTS_PER_VIEW = 200
@@ -87,7 +88,8 @@ def generate_scene(name: str, out: Path, *, seed: int = 0, format: str = "scene"
     _, edits = BUILDERS[name]
     c2w_all, intrinsics = scene_cameras(config)
     out = Path(out)
-    for sub in ["images", "gt"] + [f"gt/edits/{e.id}/{k}" for e in edits for k in ("images", "masks")]:
+    folders = [e.id for e in edits] + [mode_edit_id(e.id, m.id) for e in edits for m in e.modes]
+    for sub in ["images", "gt"] + [f"gt/edits/{f}/{k}" for f in folders for k in ("images", "masks")]:
         (out / sub).mkdir(parents=True, exist_ok=True)
     n = len(c2w_all)
     results = [None] * n
@@ -139,13 +141,15 @@ def _render_and_write_view(name: str, seed: int, overrides: dict, out: Path, i: 
     builder, edits = BUILDERS[name]
     world = builder(config, seed)
     c2w = scene_cameras(config)[0][i]
-    images, geometry = render_view(config, world, c2w, [None] + [e.variant for e in edits])
+    # Alternative modes render as variants named by their gt/edits/ folder (edit id "." mode id).
+    modes = [dataclasses.replace(m, id=mode_edit_id(e.id, m.id)) for e in edits for m in e.modes]
+    images, geometry = render_view(config, world, c2w, [None] + [e.variant for e in edits] + modes)
     original = images[None]
     _write_png(cv2, out / "images" / view_name(i), original)
-    for edit in edits:
-        edited, mask = edit_ground_truth(original, images[edit.id], config.mask_threshold)
-        _write_png(cv2, out / "gt/edits" / edit.id / "images" / view_name(i), edited)
-        if not cv2.imwrite(str(out / "gt/edits" / edit.id / "masks" / view_name(i)), mask.astype(np.uint8) * 255):
+    for folder in [e.id for e in edits] + [m.id for m in modes]:
+        edited, mask = edit_ground_truth(original, images[folder], config.mask_threshold)
+        _write_png(cv2, out / "gt/edits" / folder / "images" / view_name(i), edited)
+        if not cv2.imwrite(str(out / "gt/edits" / folder / "masks" / view_name(i)), mask.astype(np.uint8) * 255):
             raise OSError(f"could not write a mask into {out}")
     rng = np.random.default_rng([seed, 7, i])   # sparse-point sampling only
     pick = rng.choice(len(geometry.points), size=min(POINTS_PER_VIEW, len(geometry.points)), replace=False)
@@ -188,7 +192,7 @@ def _write_scene_toml(path: Path, config: SceneConfig, seed: int, edits) -> None
     for e in edits:
         lines += ["[[edits]]", f"id = {q(e.id)}", f"instruction = {q(e.instruction)}",
                   f"source_caption = {q(e.source_caption)}", f"target_caption = {q(e.target_caption)}",
-                  f"kind = {q(e.kind)}", ""]
+                  f"kind = {q(e.kind)}", f"modes = [{', '.join(q(m.id) for m in e.modes)}]", ""]
     path.write_text("\n".join(lines))
 
 

@@ -5,6 +5,12 @@
     bear       object-centric 360 degree capture: a bear statue on a stone pedestal
     portrait   forward-facing capture: a head-and-shoulders figure before a hedge, on a frontal arc
 
+Every edit also has alternative *modes* (`EditDef.modes`): other plausible appearances of the same
+instruction (another blue for "turn the tent blue", grey overcast snow for "make it look like it just
+snowed"), rendered by the same ray caster so they are as 3D-consistent as the ground truth. They are not
+ground truth: the InstructPix2Pix emulator's mode lock-in (dualnerf.editors.emulator) draws its output
+from them, and a field that ends in one of them has edited the scene the wrong way.
+
 Every scene but `tiny` has the three kinds of edit (`EditDef.kind`): "recolour" (one object's
 colours), "global" (season, weather or light over most of the image) and "geometry" (an object
 added or removed, traced by the same ray caster so occlusion and shadows are exact).
@@ -45,6 +51,7 @@ class EditDef:
     target_caption: str
     variant: Variant
     kind: str = "recolour"      # one of EDIT_KINDS
+    modes: tuple[Variant, ...] = ()   # alternative appearances of the same instruction (not ground truth)
 
 
 @dataclass(frozen=True)
@@ -90,14 +97,22 @@ SKY = Material("sky", ((0.20, 0.30, 0.18), (0.42, 0.62, 0.88), (0.95, 0.95, 0.97
 AUTUMN_FOLIAGE = ((0.80, 0.42, 0.08), (0.70, 0.22, 0.06), (0.90, 0.68, 0.12))
 AUTUMN_GRASS = ((0.55, 0.48, 0.22), (0.62, 0.50, 0.25), (0.45, 0.32, 0.18))
 
+# Alternative modes (see the module docstring): another reading of the same instruction.
+GREY_SNOW = (0.64, 0.68, 0.76)           # overcast, grey-blue snow instead of fresh white snow
+TENT_TEAL = ((0.08, 0.52, 0.58), (0.05, 0.40, 0.46), (0.22, 0.68, 0.72))   # a teal "blue"
+RED_FOLIAGE = ((0.70, 0.12, 0.08), (0.55, 0.08, 0.06), (0.82, 0.30, 0.10))  # red rather than orange leaves
+
 SNOW_EDIT = EditDef("snow", "Make it look like it just snowed", "a campsite with a tent on grass",
-                    "a campsite with a tent covered in fresh snow", Variant("snow", snow=True), kind="global")
+                    "a campsite with a tent covered in fresh snow", Variant("snow", snow=True), kind="global",
+                    modes=(Variant("grey_snow", snow=True, snow_colour=GREY_SNOW),))
 BLUE_TENT_EDIT = EditDef("blue_tent", "Turn the tent blue", "a campsite with an orange tent",
-                         "a campsite with a blue tent", Variant("blue_tent", recolour={"tent": TENT_BLUE}))
+                         "a campsite with a blue tent", Variant("blue_tent", recolour={"tent": TENT_BLUE}),
+                         modes=(Variant("teal_tent", recolour={"tent": TENT_TEAL}),))
 AUTUMN_EDIT = EditDef("autumn", "Make it autumn", "a campsite with green trees in summer",
                       "a campsite with orange trees in autumn",
                       Variant("autumn", recolour={"foliage": AUTUMN_FOLIAGE, "grass": AUTUMN_GRASS}),
-                      kind="global")
+                      kind="global",
+                      modes=(Variant("red_autumn", recolour={"foliage": RED_FOLIAGE, "grass": AUTUMN_GRASS}),))
 
 
 def _tree(name: str, x: float, y: float, height: float, conifer: bool) -> list[SceneObject]:
@@ -168,12 +183,14 @@ def campsite_world(config: SceneConfig, seed: int) -> World:
 # --- campsite: a geometry edit (an added canoe; appended, so every other object keeps its texture) ---
 CANOE = Material("canoe", ((0.78, 0.12, 0.10), (0.62, 0.08, 0.07), (0.90, 0.80, 0.70)),
                  frequency=1.4, octaves=5, patch_amount=0.15, detail=0.3)
+CANOE_DARK = Material("canoe", ((0.45, 0.07, 0.09), (0.36, 0.05, 0.07), (0.62, 0.45, 0.35)),
+                      frequency=1.4, octaves=5, patch_amount=0.15, detail=0.3)       # a maroon "red" canoe
+_CANOE_SHAPE = Ellipsoid(centre=(2.3, -1.9, 0.06), radii=(1.0, 0.3, 0.2), rotation=rotation_z(0.8))
 CANOE_EDIT = EditDef(
     "canoe", "Put a red canoe next to the campfire", "a campsite with a tent and a campfire",
     "a campsite with a tent, a campfire and a red canoe",
-    Variant("canoe", add=(SceneObject("canoe", Ellipsoid(centre=(2.3, -1.9, 0.06), radii=(1.0, 0.3, 0.2),
-                                                         rotation=rotation_z(0.8)), CANOE),)),
-    kind="geometry")
+    Variant("canoe", add=(SceneObject("canoe", _CANOE_SHAPE, CANOE),)),
+    kind="geometry", modes=(Variant("maroon_canoe", add=(SceneObject("canoe", _CANOE_SHAPE, CANOE_DARK),)),))
 
 # --- bear: an object-centric 360 degree capture of a statue on a pedestal ---
 FUR = Material("fur", ((0.42, 0.27, 0.15), (0.33, 0.20, 0.11), (0.55, 0.38, 0.22)),
@@ -193,18 +210,26 @@ WINTER_SKY = ((0.88, 0.90, 0.94), (0.62, 0.68, 0.78), (0.92, 0.92, 0.94))
 PEDESTAL_TOP = 0.35
 BEAR_HEAD = (0.62, 0.0, 1.02)
 
+RED_PANDA_FUR = ((0.70, 0.30, 0.12), (0.60, 0.24, 0.09), (0.85, 0.55, 0.30))   # "panda" read as red panda
+GREY_WINTER_SKY = ((0.70, 0.72, 0.75), (0.50, 0.53, 0.58), (0.80, 0.80, 0.82))
+PARTY_HAT_GOLD = Material("party_hat", ((0.95, 0.75, 0.10), (0.15, 0.65, 0.30), (0.98, 0.95, 0.85)),
+                          frequency=6.0, octaves=4, patch_amount=0.4, detail=0.3)
+_PARTY_HAT_SHAPE = pyramid((BEAR_HEAD[0] - 0.03, 0.0, BEAR_HEAD[2] + 0.13), radius=0.14, height=0.42, sides=14)
+
 PANDA_EDIT = EditDef("panda", "Turn the bear into a panda", "a statue of a brown bear on a stone pedestal",
                      "a statue of a black and white panda on a stone pedestal",
-                     Variant("panda", recolour={"fur": PANDA_WHITE, "paws": PANDA_BLACK}), kind="recolour")
+                     Variant("panda", recolour={"fur": PANDA_WHITE, "paws": PANDA_BLACK}), kind="recolour",
+                     modes=(Variant("red_panda", recolour={"fur": RED_PANDA_FUR, "paws": PANDA_BLACK}),))
 WINTER_EDIT = EditDef("winter", "Make it winter", "a bear statue in a gravel garden on a summer day",
                       "a bear statue in a snowy garden on a winter day",
-                      Variant("winter", snow=True, recolour={"sky": WINTER_SKY}), kind="global")
+                      Variant("winter", snow=True, recolour={"sky": WINTER_SKY}), kind="global",
+                      modes=(Variant("grey_winter", snow=True, snow_colour=GREY_SNOW,
+                                     recolour={"sky": GREY_WINTER_SKY}),))
 PARTY_HAT_EDIT = EditDef(
     "party_hat", "Give the bear a party hat", "a statue of a bear on a stone pedestal",
     "a statue of a bear wearing a party hat on a stone pedestal",
-    Variant("party_hat", add=(SceneObject("party_hat", pyramid((BEAR_HEAD[0] - 0.03, 0.0, BEAR_HEAD[2] + 0.13),
-                                                               radius=0.14, height=0.42, sides=14), PARTY_HAT),)),
-    kind="geometry")
+    Variant("party_hat", add=(SceneObject("party_hat", _PARTY_HAT_SHAPE, PARTY_HAT),)),
+    kind="geometry", modes=(Variant("gold_hat", add=(SceneObject("party_hat", _PARTY_HAT_SHAPE, PARTY_HAT_GOLD),)),))
 
 
 def bear_world(config: SceneConfig, seed: int) -> World:
@@ -257,21 +282,33 @@ SUNSET_LIGHT = (1.18, 0.82, 0.58)
 
 HEAD = (0.0, 0.0, 1.72)
 
+CRIMSON_SWEATER = ((0.72, 0.10, 0.30), (0.58, 0.06, 0.22), (0.85, 0.28, 0.45))
+PINK_SKY = ((0.30, 0.20, 0.22), (0.90, 0.55, 0.65), (0.98, 0.82, 0.85))
+PINK_LIGHT = (1.12, 0.80, 0.90)
+BLACK_FELT = Material("felt", ((0.10, 0.09, 0.08), (0.07, 0.06, 0.06), (0.18, 0.16, 0.14)),
+                      frequency=5.0, octaves=5, patch_amount=0.2, detail=0.35)
+
+
+def _cowboy_hat(felt: Material) -> tuple[SceneObject, ...]:
+    return (SceneObject("hat_brim", Cylinder(centre=(HEAD[0], HEAD[1] + 0.01, HEAD[2] + 0.12), radius=0.32,
+                                             height=0.03), felt),
+            SceneObject("hat_crown", Cylinder(centre=(HEAD[0], HEAD[1] + 0.01, HEAD[2] + 0.14), radius=0.15,
+                                              height=0.17), felt))
+
+
 RED_SWEATER_EDIT = EditDef("red_sweater", "Turn his sweater red", "a man in a blue sweater in front of a hedge",
                            "a man in a red sweater in front of a hedge",
-                           Variant("red_sweater", recolour={"sweater": RED_SWEATER}), kind="recolour")
+                           Variant("red_sweater", recolour={"sweater": RED_SWEATER}), kind="recolour",
+                           modes=(Variant("crimson_sweater", recolour={"sweater": CRIMSON_SWEATER}),))
 SUNSET_EDIT = EditDef("sunset", "Make it sunset", "a portrait of a man in front of a hedge at midday",
                       "a portrait of a man in front of a hedge in warm sunset light",
-                      Variant("sunset", light=SUNSET_LIGHT, recolour={"sky": SUNSET_SKY}), kind="global")
+                      Variant("sunset", light=SUNSET_LIGHT, recolour={"sky": SUNSET_SKY}), kind="global",
+                      modes=(Variant("pink_sunset", light=PINK_LIGHT, recolour={"sky": PINK_SKY}),))
 COWBOY_HAT_EDIT = EditDef(
     "cowboy_hat", "Give him a cowboy hat", "a portrait of a man in front of a hedge",
     "a portrait of a man wearing a cowboy hat in front of a hedge",
-    Variant("cowboy_hat", add=(
-        SceneObject("hat_brim", Cylinder(centre=(HEAD[0], HEAD[1] + 0.01, HEAD[2] + 0.12), radius=0.32,
-                                         height=0.03), FELT),
-        SceneObject("hat_crown", Cylinder(centre=(HEAD[0], HEAD[1] + 0.01, HEAD[2] + 0.14), radius=0.15,
-                                          height=0.17), FELT))),
-    kind="geometry")
+    Variant("cowboy_hat", add=_cowboy_hat(FELT)), kind="geometry",
+    modes=(Variant("black_hat", add=_cowboy_hat(BLACK_FELT)),))
 
 
 def portrait_world(config: SceneConfig, seed: int) -> World:

@@ -102,7 +102,9 @@ def snow_cover(p: np.ndarray, normals: np.ndarray, footprint: np.ndarray, seed: 
     return _smoothstep(0.35, 0.7, normals[:, 2] + 0.8 * patchiness).astype(np.float32)
 
 
-def snow_albedo(p: np.ndarray, footprint: np.ndarray, seed: int) -> np.ndarray:
+def snow_albedo(p: np.ndarray, footprint: np.ndarray, seed: int,
+                colour: tuple[float, float, float] | None = None) -> np.ndarray:
+    """Snow's albedo: `colour` (default SNOW[0], fresh white snow) with fine sparkle."""
     sparkle = fbm(p, 4.0, 5, seed + 12, footprint)
-    base = np.asarray(SNOW[0], dtype=np.float32)
+    base = np.asarray(SNOW[0] if colour is None else colour, dtype=np.float32)
     return np.clip(base * (1.0 + 0.6 * sparkle)[:, None], 0.0, 1.0).astype(np.float32)

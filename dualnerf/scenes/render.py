@@ -24,7 +24,8 @@ class SceneObject:
 
 @dataclass(frozen=True)
 class Variant:
-    """A variant of the scene: palettes swapped by material tag, optionally snow on top, a light colour
+    """A variant of the scene: palettes swapped by material tag, optionally snow on top (of colour
+    `snow_colour`, default fresh white snow), a light colour
     (a global tint of every surface and the sky, e.g. sunset), and objects added or removed (by name).
 
     Added objects go after the world's own, and removed ones are hidden rather than dropped, so every
@@ -35,6 +36,7 @@ class Variant:
     id: str
     recolour: dict[str, Palette] = field(default_factory=dict)
     snow: bool = False
+    snow_colour: tuple[float, float, float] | None = None
     light: tuple[float, float, float] | None = None
     add: tuple[SceneObject, ...] = ()
     remove: tuple[str, ...] = ()
@@ -221,7 +223,7 @@ def shade(world: World, geometry: Geometry, variant: Variant | None = None,
         n = geometry.normals[sel]
         if variant.snow:
             cover = snow_cover(p, n, fp, world.seed)[:, None]
-            albedo = albedo * (1 - cover) + snow_albedo(p, fp, world.seed) * cover
+            albedo = albedo * (1 - cover) + snow_albedo(p, fp, world.seed, variant.snow_colour) * cover
         lambert = np.maximum(n @ sun, 0.0).astype(np.float32) * geometry.lit[sel]
         # Ambient light comes from the sky above: surfaces facing down get less of it.
         ambient = world.ambient * (0.75 + 0.25 * n[:, 2]).astype(np.float32)

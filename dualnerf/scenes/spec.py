@@ -6,10 +6,14 @@ Scene folder layout (a contract other stages code against):
     images/<name>.png                      original views, 8-bit RGB
     scene.toml                             [scene] name, generator, seed, width, height
                                            [[edits]] id, instruction, source_caption, target_caption,
-                                                     kind (optional: recolour | global | geometry)
+                                                     kind (optional: recolour | global | geometry),
+                                                     modes (optional: ids of alternative modes)
     gt/transforms.json                     ground-truth cameras, nerfstudio convention
     gt/edits/<edit_id>/images/<name>.png   ground-truth edited views (same cameras, edited materials)
     gt/edits/<edit_id>/masks/<name>.png    8-bit masks, 255 where the edit changes the colour
+    gt/edits/<edit_id>.<mode>/...          the same for each alternative mode of the edit (another plausible
+                                           appearance of the instruction; NOT ground truth: the InstructPix2Pix
+                                           emulator's mode lock-in draws from them)
 """
 from __future__ import annotations
 
@@ -38,6 +42,7 @@ class EditSpec:
     source_caption: str
     target_caption: str
     kind: str = ""           # recolour | global | geometry ("" in folders written before kinds existed)
+    modes: tuple[str, ...] = ()   # alternative modes (gt/edits/<id>.<mode>/); () in folders written before them
 
 
 @dataclass(frozen=True)
@@ -83,6 +88,13 @@ def load_scene_spec(folder: Path) -> SceneSpec:
                   for key in ("id", "instruction", "source_caption", "target_caption")}
         if "kind" in entry:
             fields["kind"] = _field(entry, "kind", str, path, where)
+        if "modes" in entry:
+            modes = entry["modes"]
+            if not isinstance(modes, list) or not all(isinstance(m, str) for m in modes):
+                raise SceneSpecError(f"{path}: {where} field 'modes' must be a list of mode ids, got {modes!r}.")
+            for mode in modes:
+                check_plain_name(mode, error=SceneSpecError, where=f"{path}: {where}", field="mode")
+            fields["modes"] = tuple(modes)
         edits.append(EditSpec(**fields))
     for i, edit in enumerate(edits):
         check_plain_name(edit.id, error=SceneSpecError, where=f"{path}: [[edits]] entry {i + 1}", field="id")
@@ -105,6 +117,11 @@ def _field(table: dict, key: str, kind: type, path: Path, where: str):
         raise SceneSpecError(f"{path}: {where} field '{key}' must be a non-empty {kind.__name__}, "
                              f"got {value!r}.")
     return value
+
+
+def mode_edit_id(edit_id: str, mode: str) -> str:
+    """The gt/edits/ folder name of alternative mode `mode` of edit `edit_id`."""
+    return f"{edit_id}.{mode}"
 
 
 def load_gt_edit(folder: Path, edit_id: str, name: str) -> tuple[np.ndarray, np.ndarray] | None:

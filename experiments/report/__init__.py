@@ -5,6 +5,10 @@
     table.md, table.csv, table.json    one row per method (mean ± std over seeds, n), best value marked,
                                        paired difference to a reference row with a bootstrap CI
     scenes/<scene>_<edit>/table.*      the same per scene and edit (only when there are several)
+    joint_psnr.png                     in-mask vs outside-mask PSNR per row and seed (experiments/report/joint.py)
+                                       table.md and index.html also hold CCI's precision/recall at flagging
+                                       the emulator's failed calls (flagging.py) and the metrics that see
+                                       the ground truth
     params/<axis>.png                  each metric against a parameter axis, error bars = std over seeds
     grid.png                           rows: original, ground-truth edit (procedural scenes), methods
     path_strip.png                     camera-path frames at evenly spaced positions, per method
@@ -22,6 +26,8 @@ from pathlib import Path
 from experiments.report import differences as RS
 from experiments.report.convergence import convergence_html, convergence_summary, write_convergence
 from experiments.report.curves import CURVE_FIGURES, load_curves, write_curves
+from experiments.report import flagging as FL
+from experiments.report import joint as J
 from experiments.report.images import write_image_grid, write_path_strip
 from experiments.report.page import metrics_table_html, statistics_html, title_rows, write_html
 from experiments.report.parameter_plots import write_parameter_plots
@@ -88,6 +94,11 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict, refe
     columns, table = aggregate(rows, docs)
     paired, reference_label = _paired(rows, docs, table, columns, reference)
     table_doc = write_tables(columns, table, docs, out_dir, paired, reference_label)
+    flag_entries = FL.flagging_rows(rows, table)
+    gt_entries = J.ground_truth_metrics(rows, docs)
+    with open(out_dir / "table.md", "a") as handle:
+        handle.write("\n".join(FL.markdown_section(flag_entries) + J.ground_truth_markdown(gt_entries)) + "\n")
+    scatter = J.write_joint_scatter(rows, docs, out_dir)
     per_scene = _per_scene_tables(rows, docs, reference, out_dir)
     param_plots = write_parameter_plots(table, columns, out_dir, reference_label)
     pairs = scene_edits(rows)
@@ -113,11 +124,16 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict, refe
         "per_scene": [{"scene": sc, "edit": ed, "folder": rel, "table": doc}
                       for sc, ed, rel, *_, doc in per_scene], "parameter_plots": param_plots,
         "path_strip_rows": strip_labels, "curves": curves, "convergence": convergence,
-        "videos": [rel for _, rel in videos],
+        "videos": [rel for _, rel in videos], "joint_scatter": scatter, "cci_flagging": flag_entries,
+        "sees_ground_truth": gt_entries,
         "rows": [{"label": r.label, "seed": r.seed, "scene": r.scene, "edit": r.edit,
                   "params": [list(p) for p in r.params], "evaluate_dir": str(r.evaluate_dir),
                   "edit_dir": None if r.edit_dir is None else str(r.edit_dir)} for r in rows]}, indent=1))
+    stats = statistics_html(columns, table, docs, paired, reference_label, per_scene, param_plots)
+    first = 1 if paired else 0                                   # after the differences to the reference
+    joint = [f"<h2>Edit and background together</h2><img src='{scatter}' alt='in-mask vs outside-mask PSNR'>"
+             f"<p>{J.SCATTER_CAPTION}</p>"] if scatter else []
+    joint += [FL.html_section(flag_entries), J.ground_truth_html(gt_entries)]
     return write_html(out_dir, title_rows=title, columns=columns, table=table, docs=docs,
                       grid_labels=grid_labels, strip_labels=strip_labels, curves=curves, videos=videos,
-                      sections=[*statistics_html(columns, table, docs, paired, reference_label, per_scene,
-                                                  param_plots), *convergence_html(convergence)])
+                      sections=[*stats[:first], *joint, *stats[first:], *convergence_html(convergence)])

@@ -51,6 +51,8 @@ def paired_differences(rows, docs, table, columns, reference: str, metric_value)
 
 def bootstrap_record(reference: str) -> dict:
     return {"reference": reference, "method": f"{S.BOOTSTRAP_METHOD} bootstrap of the mean paired difference",
+            "verdict": f"paired t interval ({S.T_LEVEL:.0%}, mean ± t_(n-1) sd/sqrt(n)): t_ci_low, t_ci_high, "
+                       f"ci_excludes_zero",
             "unit": ["scene", "edit", "seed"], "resamples": S.BOOTSTRAP_RESAMPLES, "level": S.BOOTSTRAP_LEVEL,
             "seed": S.BOOTSTRAP_SEED, "generator": "numpy.random.default_rng(seed), fresh per comparison",
             "min_pairs": S.MIN_PAIRS}
@@ -59,21 +61,30 @@ def bootstrap_record(reference: str) -> dict:
 def diff_json(diff: S.PairedDifference) -> dict:
     return {"mean": json_value(diff.mean), "ci_low": json_value(diff.low), "ci_high": json_value(diff.high),
             "n_pairs": diff.n_pairs, "ci_contains_zero": diff.contains_zero,
+            "t_ci_low": json_value(diff.t_low), "t_ci_high": json_value(diff.t_high),
+            "ci_excludes_zero": diff.excludes_zero,
             "unpaired": [list(u) for u in diff.unpaired],
             "unpaired_reference": [list(u) for u in diff.unpaired_reference],
             "non_finite": [list(u) for u in diff.non_finite]}
 
 
+def verdict(diff: S.PairedDifference) -> str:
+    """'excl. 0' / 'incl. 0' from the paired t interval; '' without an interval."""
+    if diff.excludes_zero is None:
+        return ""
+    return "excl. 0" if diff.excludes_zero else "incl. 0"
+
+
 def format_diff(diff: S.PairedDifference | None, column: str) -> str:
-    """'+0.0400 [+0.0200, +0.0600]', with † when the interval contains 0; 'n/a' without pairs."""
+    """'+0.0400 [+0.0200, +0.0600] excl. 0': the mean paired difference, its paired 95% t interval and
+    whether that interval excludes 0; 'n/a' without pairs, '(n=1, no CI)' with one pair."""
     if diff is None or math.isnan(diff.mean):
         return "n/a"
     digits = 2 if "psnr" in column else 4
     text = f"{diff.mean:+.{digits}f}"
-    if diff.contains_zero is None:
+    if diff.excludes_zero is None:
         return text + f" (n={diff.n_pairs}, no CI)"
-    text += f" [{diff.low:+.{digits}f}, {diff.high:+.{digits}f}]"
-    return text + " †" if diff.contains_zero else text
+    return text + f" [{diff.t_low:+.{digits}f}, {diff.t_high:+.{digits}f}] {verdict(diff)}"
 
 
 def _unpaired_note(paired: dict) -> list[str]:
@@ -90,10 +101,11 @@ def _unpaired_note(paired: dict) -> list[str]:
 
 def caption(reference: str) -> str:
     return (f"Mean paired difference (row − {reference}) over the (scene, edit, seed) units both rows ran, "
-            f"with a {S.BOOTSTRAP_LEVEL:.0%} {S.BOOTSTRAP_METHOD} bootstrap interval (B = "
-            f"{S.BOOTSTRAP_RESAMPLES}, numpy default_rng({S.BOOTSTRAP_SEED})). † the interval contains 0: "
-            f"no difference shown at this n. With few units the bootstrap interval is too narrow "
-            f"(3 seeds give at most 10 distinct resamples); read it as a screen, not a test.")
+            f"with its paired {S.T_LEVEL:.0%} t interval (mean ± t_(n−1)·sd/√n; t = 4.30 at 3 units). "
+            f"'excl. 0': the interval excludes zero, a difference beyond seed noise at this n; 'incl. 0': "
+            f"no difference shown. The {S.BOOTSTRAP_LEVEL:.0%} {S.BOOTSTRAP_METHOD} bootstrap interval "
+            f"(B = {S.BOOTSTRAP_RESAMPLES}, numpy default_rng({S.BOOTSTRAP_SEED})) is in table.json/csv; "
+            f"with few units it is too narrow (3 seeds give at most 10 distinct resamples).")
 
 
 def markdown_section(table, columns, headers, paired: dict, reference: str) -> list[str]:
@@ -126,7 +138,7 @@ def html_section(table, columns, headers, paired: dict, reference: str) -> str:
                      f"</td><td>{max(d.n_pairs for d in diffs.values())}</td>")
         for c in columns:
             diff = diffs.get(c)
-            cls = " class='ns'" if diff is not None and diff.contains_zero else ""
+            cls = " class='ns'" if diff is not None and diff.excludes_zero is False else ""
             parts.append(f"<td{cls}>{esc(format_diff(diff, c))}</td>")
         parts.append("</tr>")
     parts.append(f"</table><p>{esc(caption(reference))}</p>")

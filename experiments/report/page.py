@@ -59,7 +59,8 @@ def write_html(out_dir: Path, *, title_rows, columns, table, docs, grid_labels, 
     """index.html; `sections` are ready HTML fragments (statistics) placed after the metrics table."""
     esc = html.escape
     parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'><title>DualNeRF report</title>",
-             ("<style>body{font-family:sans-serif;margin:2em;max-width:1200px}table{border-collapse:collapse}"
+             ("<style>body{font-family:sans-serif;margin:2em;max-width:1200px}"
+             "table{border-collapse:collapse;display:block;overflow-x:auto;max-width:100%}"
              "td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}th{background:#eee}"
              ".best{font-weight:bold;background:#e6f4e6}.warn{color:#a00;font-weight:bold}.ns{color:#777}.paired td{white-space:nowrap}"
              "img{max-width:100%}</style></head><body>"), "<h1>DualNeRF experiment report</h1>",

@@ -134,7 +134,8 @@ def write_tables(columns: list[str], table: list[TableRow], docs: list[dict], ou
         for column in columns:
             head += [f"{column}_mean", f"{column}_std", f"{column}_n", f"{column}_best"]
             if paired:
-                head += [f"{column}_diff", f"{column}_ci_low", f"{column}_ci_high", f"{column}_ci_contains_zero"]
+                head += [f"{column}_diff", f"{column}_ci_low", f"{column}_ci_high", f"{column}_ci_contains_zero",
+                         f"{column}_t_ci_low", f"{column}_t_ci_high", f"{column}_ci_excludes_zero"]
         writer.writerow(head)
         for row in table:
             record = [row.label, *("" if t is None else int(t) for t in _flags(row.method)),
@@ -145,9 +146,11 @@ def write_tables(columns: list[str], table: list[TableRow], docs: list[dict], ou
                            int(row.best[column])]
                 if paired:
                     diff = paired.get(row_key(row), {}).get(column)
-                    record += ["", "", "", ""] if diff is None else [
+                    record += [""] * 7 if diff is None else [
                         _csv_number(diff.mean), _csv_number(diff.low), _csv_number(diff.high),
-                        "" if diff.contains_zero is None else int(diff.contains_zero)]
+                        "" if diff.contains_zero is None else int(diff.contains_zero),
+                        _csv_number(diff.t_low), _csv_number(diff.t_high),
+                        "" if diff.excludes_zero is None else int(diff.excludes_zero)]
             writer.writerow(record)
 
     doc = {
