@@ -3,7 +3,8 @@
     python -m tests.pipeline_stages SPEC.json      runs the steps in SPEC and prints the result JSON
 
 SPEC = {"cache": dir, "run_dir": dir, "executor": "serial"|"process"|"ray", "jobs": n,
-        "die": null | "before_publish" | "mid_manifest",
+        "die": null | "before_publish" | "mid_manifest", "lease_ttl_s": s (default 30),
+        "clock_offset_s": s (this process's wall clock runs that far ahead, as on a host with a skewed clock),
         "steps": [{"stage", "params", "label", "inputs": {name: step index | {"external": path}}}]}
 """
 from __future__ import annotations
@@ -45,6 +46,7 @@ class CountParams:
     step_seconds: float = 0.0  # non-semantic: slows the stage so a test can interrupt it
     gate: str = ""            # non-semantic: at step 1 wait until this file exists
     native_sigterm: bool = False  # non-semantic: SIGTERM kills without unwinding, as after glog's handler
+    checkpoint_trace: str = ""    # non-semantic: file the stage appends "<pid> checkpoint <i>" to after each one
 
 
 class CountStage(Stage):
@@ -53,7 +55,7 @@ class CountStage(Stage):
     name = "count"
     version = "1"
     Params = CountParams
-    nonsemantic_params = frozenset({"trace", "step_seconds", "gate", "native_sigterm"})
+    nonsemantic_params = frozenset({"trace", "step_seconds", "gate", "native_sigterm", "checkpoint_trace"})
 
     def run(self, ctx) -> None:
         p = ctx.params
@@ -75,6 +77,7 @@ class CountStage(Stage):
                 _append(p.trace, f"{os.getpid()} {i}")
                 with ctx.checkpoint(i) as folder:
                     (folder / "state.json").write_text(json.dumps({"total": total}))
+                _append(p.checkpoint_trace, f"{os.getpid()} checkpoint {i}")
                 bar.update(1, total=total)
                 if p.step_seconds:
                     time.sleep(p.step_seconds)
@@ -213,11 +216,15 @@ def main(argv: list[str]) -> int:
     from pipeline.store import Store
 
     spec = json.loads(Path(argv[0]).read_text())
+    if spec.get("clock_offset_s"):
+        real_time, offset = time.time, float(spec["clock_offset_s"])
+        time.time = lambda: real_time() + offset
     if spec.get("die"):
         _die_at(spec["die"])
     steps = build_steps(spec["steps"])
     executor = make_executor(spec.get("executor", "serial"), jobs=spec.get("jobs", 1))
-    result = run_steps(steps, registry=REGISTRY, store=Store(spec["cache"]), executor=executor,
+    store = Store(spec["cache"], lease_ttl_s=spec.get("lease_ttl_s", 30.0))
+    result = run_steps(steps, registry=REGISTRY, store=store, executor=executor,
                        run_dir=Path(spec["run_dir"]), quiet=True)
     print(json.dumps({"results": [str(result.results.get(s)) for s in steps],
                       "status": [result.status[s] for s in steps],
