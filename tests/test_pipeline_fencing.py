@@ -4,7 +4,6 @@ live writer's temp folder nor takes its lease."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 from pathlib import Path
 
@@ -54,7 +53,7 @@ def test_a_writer_paused_past_its_lease_neither_publishes_nor_writes_scratch(tmp
     assert "lost the lease" in first_log and "refusing to write checkpoint" in first_log
     assert "nothing was published" in first_log
     second_log = (tmp_path / "runs" / "second" / "logs" / "c.log").read_text()
-    assert f"took over the lease on" in second_log and f"pid {first.pid} (no heartbeat for" in second_log
+    assert "took over the lease on" in second_log and f"pid {first.pid} (no heartbeat for" in second_log
     store = Store(cache)
     assert not list(store.tmp.iterdir()) and not list(store.leases.iterdir())
     assert not store.scratch_path(result.name).exists()
@@ -97,13 +96,12 @@ def test_orphan_clean_up_reads_no_clock(tmp_path, monkeypatch):
         live = store.new_tmp("c" * 64, lease.token)
         former = store.new_tmp("c" * 64, "0" * 32)          # a writer that lost the lease to `lease`
         unleased = store.new_tmp("d" * 64, "1" * 32)
+        real = time.time
         for offset in (60, -60):
-            real = time.time
-            monkeypatch.setattr(time, "time", lambda: real() + offset)
+            monkeypatch.setattr(time, "time", lambda offset=offset: real() + offset)
             assert store.orphan_tmp() == sorted([former, unleased])
             monkeypatch.undo()
         store.remove_orphan_tmp()
         assert live.exists() and not former.exists() and not unleased.exists()
     finally:
         lease.release()
-    os.sync()
