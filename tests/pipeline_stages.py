@@ -9,6 +9,7 @@ SPEC = {"cache": dir, "run_dir": dir, "executor": "serial"|"process"|"ray", "job
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -27,6 +28,7 @@ REGISTRY = {
     "fail": "tests.pipeline_stages:FailStage",
     "vandal": "tests.pipeline_stages:VandalStage",
     "suicide": "tests.pipeline_stages:SuicideStage",
+    "device_probe": "tests.pipeline_stages:DeviceProbeStage",
 }
 
 
@@ -183,6 +185,43 @@ class SuicideStage(FailStage):
         os.kill(os.getpid(), signal.SIGKILL)
 
 
+@dataclass(frozen=True)
+class DeviceProbeParams:
+    device: str = "cpu"
+    num_threads: int = 0
+    gpus: float = 0.0              # > 0: ask for this many GPUs whatever the device
+    tag: str = ""
+
+
+class DeviceProbeStage(Stage):
+    """A stage stub for placement tests: writes what it was given where it ran (CUDA_VISIBLE_DEVICES, the
+    GPU ids and resources Ray assigned, its node and that node's resources)."""
+
+    name = "device_probe"
+    version = "1"
+    Params = DeviceProbeParams
+    resources = Resources(cpus=1, gpus=0, memory_gb=1.5)
+
+    @classmethod
+    def resources_for(cls, params) -> Resources:
+        hints = super().resources_for(params)
+        return dataclasses.replace(hints, gpus=params.gpus) if params.gpus > 0 else hints
+
+    def run(self, ctx) -> None:
+        seen = {"cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES"), "threads": ctx.threads}
+        try:
+            import ray
+
+            if ray.is_initialized():
+                context = ray.get_runtime_context()
+                node = next(n for n in ray.nodes() if n["NodeID"] == context.get_node_id())
+                seen.update(gpu_ids=[str(g) for g in ray.get_gpu_ids()], node_id=context.get_node_id(),
+                            node_resources=node["Resources"], assigned=context.get_assigned_resources())
+        except ImportError:
+            pass
+        (ctx.out_dir / "seen.json").write_text(json.dumps(seen, sort_keys=True))
+
+
 def build_steps(spec_steps: list[dict]):
     from pipeline.dag import External, Step
 
@@ -222,7 +261,8 @@ def main(argv: list[str]) -> int:
     if spec.get("die"):
         _die_at(spec["die"])
     steps = build_steps(spec["steps"])
-    executor = make_executor(spec.get("executor", "serial"), jobs=spec.get("jobs", 1))
+    executor = make_executor(spec.get("executor", "serial"), jobs=spec.get("jobs", 1),
+                             address=spec.get("ray_address"))
     store = Store(spec["cache"], lease_ttl_s=spec.get("lease_ttl_s", 30.0))
     result = run_steps(steps, registry=REGISTRY, store=store, executor=executor,
                        run_dir=Path(spec["run_dir"]), quiet=True)
