@@ -174,6 +174,7 @@ def probe_cluster(ray, *, cache_root: Path, run_dir: Path, stage_refs: list[str]
         for ref in pending:
             reports[refs[ref]].problems.append(f"did not answer the start-up probe within {timeout_s:.0f} s")
             ray.cancel(ref, force=True)
+        answered = []
         for ref in ready:
             report = reports[refs[ref]]
             try:
@@ -182,15 +183,14 @@ def probe_cluster(ray, *, cache_root: Path, run_dir: Path, stage_refs: list[str]
                 report.problems.append(f"the start-up probe failed there: {type(exc).__name__}: "
                                        f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else ''}")
                 continue
+            answered.append(refs[ref])
             report.hostname = answer["hostname"]
             report.problems += answer["problems"]
             differences = environment_differences(expected, answer["environment"])
             if differences:
                 report.problems.append("its environment differs from the driver's: " + "; ".join(differences))
-        for node_id, report in reports.items():
-            if report.problems:
-                continue
-            _measure_clock(ray, pinned(clock_here, node_id), report)
+        for node_id in answered:
+            _measure_clock(ray, pinned(clock_here, node_id), reports[node_id])
     finally:
         for marker in markers:
             marker.unlink(missing_ok=True)
