@@ -105,3 +105,24 @@ def test_orphan_clean_up_reads_no_clock(tmp_path, monkeypatch):
         assert live.exists() and not former.exists() and not unleased.exists()
     finally:
         lease.release()
+
+
+def test_gc_watches_leases_it_cannot_prove_dead_before_removing_their_work(tmp_path):
+    store = Store(tmp_path / "cache")
+    store.leases.mkdir(parents=True)
+    silent = "e" * 64                                  # a holder on another host that stopped beating
+    (store.leases / f"{silent}.lease").write_text(json.dumps({"host": "elsewhere", "pid": 1, "token": "s" * 32,
+                                                              "ttl_s": 0.3}))
+    (store.leases / f"{silent}.lease.{'s' * 32}.beat").write_text("4")
+    silent_tmp = store.new_tmp(silent, "s" * 32)
+    live = store.lease("f" * 64)
+    assert live.try_acquire()
+    try:
+        live_tmp = store.new_tmp("f" * 64, live.token)
+        assert store.orphan_tmp() == []                # without watching, neither can be judged
+        report = store.gc(set(), watch_s=1.0)
+    finally:
+        live.release()
+    assert not silent_tmp.exists() and not (store.leases / f"{silent}.lease").exists()
+    assert live_tmp.exists()
+    assert f"leases/{silent}.lease" in report.removed_other
