@@ -277,9 +277,14 @@ def assert_same_results_as_local(reference: Place, place: Place) -> None:
 
 # ---- the tests ----------------------------------------------------------------------------------------------
 def test_the_guides_commands_run_the_smoke_grid_on_the_cluster_like_a_local_run(cluster, smoke_reference):
-    status = cluster.sh("status")
-    assert status.returncode == 0, status.stderr
-    assert "/4.0 CPU" in status.stdout and "/1.0 GPU" in status.stdout, status.stdout   # both workers joined
+    deadline = time.monotonic() + 30
+    while True:          # `ray status` reports the autoscaler's view, which lags a node's start by seconds
+        status = cluster.sh("status")
+        assert status.returncode == 0, status.stderr
+        if "/4.0 CPU" in status.stdout and "/1.0 GPU" in status.stdout:        # both workers joined
+            break
+        assert time.monotonic() < deadline, status.stdout
+        time.sleep(1)
     place = shared_place(cluster, "main")
     started = time.perf_counter()
     code, out, err = finish(cluster.start_run(place))
