@@ -59,10 +59,10 @@ def _cost_class(stage: str, params: dict, upstream: dict) -> str:
 
 def workflow_steps(workflow: str, overrides: list[str]) -> list[SimStep]:
     """The workflow's DAG (one step per key, as the runner runs it) with README costs."""
+    from experiments.workflow import load_workflow
     from pipeline.dag import compute_keys, params_dict
     from pipeline.store import Store
     from stages import STAGES
-    from stages.workflow import load_workflow
 
     loaded = load_workflow(workflow, overrides)
     with tempfile.TemporaryDirectory() as cache:

@@ -127,17 +127,23 @@ class EnvironmentMismatchError(UserError):
     pass
 
 
-def _check_environment(stage_cls: type, params: Any, job: Job) -> dict[str, Any]:
-    """This process's stage version and environment fingerprint (pipeline.keys), which must be what the
-    key was computed for: a worker with other packages, other stage code or other numerical code paths
-    would file a result under a key that does not describe it. Returns them for the manifest."""
+def _environment_here(stage_cls: type, params: Any, job: Job) -> tuple[dict[str, Any], list[str]]:
+    """This process's stage version and environment fingerprint (pipeline.keys), and how they differ from
+    what the job's key was computed for ('path: key computed for X, this worker has Y' lines)."""
     from pipeline.canonical import canonical_value
     from pipeline.keys import environment_differences, environment_fingerprint
 
     actual = canonical_value({"version": str(stage_cls.version),
                               "environment": environment_fingerprint(stage_cls, params)}, where=job.label)
     expected = {"version": job.key_inputs.get("version"), "environment": job.key_inputs.get("environment", {})}
-    differences = environment_differences(expected, actual)
+    return actual, environment_differences(expected, actual)
+
+
+def _check_environment(stage_cls: type, params: Any, job: Job) -> dict[str, Any]:
+    """This process's stage version and environment fingerprint, which must be what the key was computed
+    for: a worker with other packages, other stage code or other numerical code paths would file a result
+    under a key that does not describe it. Returns them for the manifest."""
+    actual, differences = _environment_here(stage_cls, params, job)
     if differences:
         raise EnvironmentMismatchError(
             f"step '{job.label}' was not computed on {socket.gethostname()} (pid {os.getpid()}): its key "
@@ -146,6 +152,14 @@ def _check_environment(stage_cls: type, params: Any, job: Job) -> dict[str, Any]
             f"computed or published. Run the step where the environment matches (same package versions and "
             f"code, a CPU of the same kind), or start the run from a machine like this worker.")
     return actual
+
+
+def environment_problems(job: Job) -> list[str]:
+    """What `_check_environment` would refuse `job` for in this process, without computing anything (the
+    Ray executor's start-up probe asks every node this before any step runs: pipeline.probe)."""
+    stage_cls = load_ref(job.stage_ref)
+    params = build_params(stage_cls.Params, job.params, f"step '{job.label}'")
+    return _environment_here(stage_cls, params, job)[1]
 
 
 def _check_inputs_unchanged(store: Store, job: Job) -> None:

@@ -50,8 +50,9 @@ class Executor(ABC):
     def wait(self) -> list[tuple[Any, Outcome]]:
         """Block until at least one submitted job finished; return (handle, outcome) pairs."""
 
-    def prepare(self, *, store, run_dir, registry) -> None:
-        """Called by the runner once, before any job is submitted (the Ray executor probes its nodes)."""
+    def prepare(self, *, store, run_dir, jobs: list[Job]) -> None:
+        """Called by the runner once, before any job is submitted, with the jobs it may submit (the Ray
+        executor probes its nodes for them)."""
 
     def shutdown(self, interrupted: bool = False) -> None:
         pass
@@ -246,14 +247,14 @@ class RayExecutor(Executor):
             return max(1, min(resources.cpus, int(largest)))
         return max(1, resources.cpus)     # a cluster: a request no node can hold fails at once (submit)
 
-    def prepare(self, *, store, run_dir, registry) -> None:
+    def prepare(self, *, store, run_dir, jobs: list[Job]) -> None:
         if not self.probe:
             return
         from pipeline.probe import CLOCK_WARN_S, clock_summary, probe_cluster
 
         started = time.perf_counter()
         self.probe_reports = probe_cluster(self._ray, cache_root=store.root, run_dir=run_dir,
-                                           stage_refs=sorted(set(registry.values())))
+                                           jobs=jobs)
         for report in self.probe_reports:
             if report.offset_s is not None and abs(report.offset_s) - report.uncertainty_s > CLOCK_WARN_S:
                 print(f"cluster: warning: the clock of node {report.name} is {report.offset_s:+.1f} s off the "

@@ -4,8 +4,11 @@ pinned to it, whether it
 - sees the cache at the driver's absolute path, and it is the same folder (a probe file with a random
   token, written there by the driver a moment before, must be readable), and can write to it;
 - sees the run's folder the same way (a remote step writes its log there) and can write to it;
-- runs the same environment: Python and Ray, the stages' versions and their packages' versions, the
-  field kernels' build (`node_environment`);
+- runs the environment the run's keys were computed for: for one step of each distinct (stage,
+  environment) among the steps to compute, the node runs the worker's own check
+  (pipeline.engine.environment_problems: the stage's version, its packages' versions, its device and
+  its runtime_environment, e.g. the numerical code paths the CPU takes), the check every step repeats
+  before computing. Ray itself refuses a node with another Ray or Python version;
 - has a clock close to the driver's (measured with a second, warm round trip: offset +- half the round
   trip). Nothing in the cache depends on clocks any more (leases are judged by heartbeat counters), but
   run records, logs and manifests carry wall-clock times, and an offset above a minute means a host
@@ -18,7 +21,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import socket
 import time
 import uuid
@@ -28,7 +30,6 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.errors import UserError
-from pipeline.keys import package_version
 
 CLOCK_WARN_S = 2.0
 CLOCK_STOP_S = 60.0
@@ -39,45 +40,6 @@ GUIDE = "docs/cluster.md"
 
 class ClusterProbeError(UserError):
     pass
-
-
-def node_environment(stage_refs: Sequence[str]) -> dict[str, Any]:
-    """What must be equal on the driver and every node for their results to be interchangeable. The one
-    place to swap for a richer fingerprint (numerics, CPU code paths) once keys carry one."""
-    from pipeline.registry import load_ref
-
-    stages, packages = {}, {}
-    for ref in sorted(set(stage_refs)):
-        cls = load_ref(ref)
-        stages[cls.name] = str(cls.version)
-        packages.update({name: package_version(name) for name in cls.packages})
-    env: dict[str, Any] = {"python": platform.python_version(), "ray": package_version("ray"),
-                           "stages": stages, "packages": dict(sorted(packages.items()))}
-    env.update(_kernel_build())
-    return env
-
-
-def _kernel_build() -> dict[str, Any]:
-    """The app's compiled field kernels: their build name (named by the sources) and the switches that
-    select the code path. Absent for apps without them."""
-    try:
-        from dualnerf.kernels import build_name
-    except ImportError:
-        return {}
-    switches = {name: os.environ[name] for name in ("DUALNERF_KERNELS", "DUALNERF_KERNEL_VECTOR") if name in os.environ}
-    return {"kernel_build": build_name(), "kernel_switches": switches}
-
-
-def environment_differences(expected: dict[str, Any], got: dict[str, Any], prefix: str = "") -> list[str]:
-    """'torch 2.13.0 on the driver, 2.12.0 here'-style lines for every differing leaf."""
-    out = []
-    for name in sorted(set(expected) | set(got)):
-        a, b = expected.get(name, "absent"), got.get(name, "absent")
-        if isinstance(a, dict) and isinstance(b, dict):
-            out += environment_differences(a, b, f"{prefix}{name}.")
-        elif a != b:
-            out.append(f"{prefix}{name} {a} on the driver, {b} here")
-    return out
 
 
 # ---- on the node ----------------------------------------------------------------------------------------
@@ -105,14 +67,30 @@ def check_folder(folder: str, token: str, what: str) -> list[str]:
     return problems
 
 
-def probe_here(cache_root: str, run_dir: str, token: str, stage_refs: list[str]) -> dict[str, Any]:
+def check_environment(jobs: Sequence[Any]) -> list[str]:
+    """Problems of this process's environment for `jobs` (pipeline.engine.Job): the engine's own check."""
+    from pipeline.engine import environment_problems
+
+    problems = []
+    for job in jobs:
+        try:
+            differences = environment_problems(job)
+        except Exception as exc:  # noqa: BLE001 - a stage that cannot even load here is the node's problem
+            differences = [f"the stage cannot be loaded here ({type(exc).__name__}: {exc})"]
+        if differences:
+            problems.append(f"its environment differs from the one step '{job.label}' was keyed for: "
+                            + "; ".join(differences))
+    return problems
+
+
+def probe_here(cache_root: str, run_dir: str, token: str, jobs: list[Any]) -> dict[str, Any]:
     """Runs on a node (as a Ray task pinned to it)."""
     import ray
 
     return {"node_id": ray.get_runtime_context().get_node_id(), "hostname": socket.gethostname(),
             "pid": os.getpid(),
-            "problems": check_folder(cache_root, token, "cache") + check_folder(run_dir, token, "runs"),
-            "environment": node_environment(stage_refs)}
+            "problems": (check_folder(cache_root, token, "cache") + check_folder(run_dir, token, "runs")
+                         + check_environment(jobs))}
 
 
 def clock_here() -> float:
@@ -141,10 +119,24 @@ def step_nodes(ray) -> list[dict[str, Any]]:
             (n.get("Resources", {}).get("CPU", 0) > 0 or n.get("Resources", {}).get("GPU", 0) > 0)]
 
 
-def probe_cluster(ray, *, cache_root: Path, run_dir: Path, stage_refs: list[str],
+def environment_samples(jobs: Sequence[Any]) -> list[Any]:
+    """One job per distinct (stage, version and environment its key was computed for): checking it checks
+    every job like it."""
+    seen, out = set(), []
+    for job in jobs:
+        what = (job.stage_ref, json.dumps({"version": job.key_inputs.get("version"),
+                                           "environment": job.key_inputs.get("environment", {})}, sort_keys=True))
+        if what not in seen:
+            seen.add(what)
+            out.append(job)
+    return out
+
+
+def probe_cluster(ray, *, cache_root: Path, run_dir: Path, jobs: Sequence[Any],
                   timeout_s: float = PROBE_TIMEOUT_S) -> list[NodeProbe]:
-    """Probe every step node; raise ClusterProbeError (one paragraph per node) if any cannot run this run's
-    steps. Returns the reports (with clock offsets) otherwise."""
+    """Probe every step node for the `jobs` (pipeline.engine.Job) the run is about to compute; raise
+    ClusterProbeError (one paragraph per node) if any node cannot run them. Returns the reports (with
+    clock offsets) otherwise."""
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
     nodes = step_nodes(ray)
@@ -154,7 +146,7 @@ def probe_cluster(ray, *, cache_root: Path, run_dir: Path, stage_refs: list[str]
             "with --num-cpus=0 only schedules): start worker nodes with `ray start --address=HEAD:PORT` "
             f"(see {GUIDE}), then rerun.")
     token = uuid.uuid4().hex
-    expected = node_environment(stage_refs)
+    samples = environment_samples(jobs)
     markers = [Path(cache_root) / PROBE_FOLDER / token, Path(run_dir) / f".probe-{token}"]
     for marker in markers:
         marker.parent.mkdir(parents=True, exist_ok=True)
@@ -168,7 +160,7 @@ def probe_cluster(ray, *, cache_root: Path, run_dir: Path, stage_refs: list[str]
                 num_cpus=0, max_retries=0,
                 scheduling_strategy=NodeAffinitySchedulingStrategy(node_id=node_id, soft=False))
 
-        refs = {pinned(probe_here, node_id).remote(str(cache_root), str(run_dir), token, list(stage_refs)): node_id
+        refs = {pinned(probe_here, node_id).remote(str(cache_root), str(run_dir), token, samples): node_id
                 for node_id in reports}
         ready, pending = ray.wait(list(refs), num_returns=len(refs), timeout=timeout_s)
         for ref in pending:
@@ -186,9 +178,6 @@ def probe_cluster(ray, *, cache_root: Path, run_dir: Path, stage_refs: list[str]
             answered.append(refs[ref])
             report.hostname = answer["hostname"]
             report.problems += answer["problems"]
-            differences = environment_differences(expected, answer["environment"])
-            if differences:
-                report.problems.append("its environment differs from the driver's: " + "; ".join(differences))
         for node_id in answered:
             _measure_clock(ray, pinned(clock_here, node_id), reports[node_id])
     finally:

@@ -179,7 +179,7 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
     interrupted = False
     try:
         try:
-            executor.prepare(store=store, run_dir=record.dir, registry=registry)
+            executor.prepare(store=store, run_dir=record.dir, jobs=[j for k, j in jobs.items() if not store.has(k)])
         except UserError as exc:
             record.data.update(status="failed", error=str(exc), finished=time.time())
             record.save()
