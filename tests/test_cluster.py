@@ -2,8 +2,8 @@
 (the blocks marked `<!-- cluster-test: NAME -->`): a head with no CPUs, a CPU worker and a worker that
 advertises a GPU, each with 2 CPUs, on one machine; the cache and runs on a shared (temporary) folder.
 
-- the guide's run command computes the smoke grid on the cluster: same keys, same metrics and the same
-  bytes as the local reference run (apart from files that embed the cache path or wall-clock times);
+- the guide's run command, as written, computes the smoke grid on the cluster: the same keys and the same
+  bytes in every published file as the local reference run (process pool, other thread counts);
 - steps on CUDA reserve the GPU Ray assigns, memory hints reach Ray, and a request no node can hold
   fails at once naming the stage, its request and the largest node;
 - the node running the fit is killed after its first checkpoint: the run finishes, the fit resumes from
@@ -17,7 +17,6 @@ temp folder on their command line): never `ray stop`, which would stop every Ray
 from __future__ import annotations
 
 import contextlib
-import io
 import json
 import os
 import re
@@ -29,12 +28,12 @@ import subprocess
 import sys
 import tempfile
 import time
-import warnings
 from pathlib import Path
 
 import pytest
 
 from pipeline.store import MANIFEST, Store
+from tests import test_e2e_workflow as e2e
 from tests.test_e2e_workflow import ALL_LABELS, FAST, FIT, PREPROCESS, SCENE, Place, checkpoints, lease_holder
 
 pytestmark = pytest.mark.slow
@@ -43,9 +42,6 @@ ray = pytest.importorskip("ray")
 ROOT = Path(__file__).resolve().parents[1]
 GUIDE = ROOT / "docs" / "cluster.md"
 VENV_BIN = Path(sys.executable).parent
-# Published files that embed the cache path or wall-clock times, which therefore differ between two stores
-# for the same key. Issue 27 removes them from published files; then this is empty and every byte is equal.
-EMBEDS_PATH_OR_TIME = {"preprocess": {"cameras.json"}, "fit": {"metrics.json", "curve.json", "curve.png"}}
 
 
 # ---- the guide ----------------------------------------------------------------------------------------------
@@ -60,26 +56,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def cli_takes_global_flags_after_the_verb() -> bool:
-    from stages.cli import build_parser
-
-    with contextlib.redirect_stderr(io.StringIO()):
-        try:
-            build_parser().parse_args(["run", "w.toml", "--cache", "c", "--runs", "r"])
-        except SystemExit:
-            return False
-    return True
-
-
-def hoist_global_flags(command: str) -> str:
-    """Until the CLI accepts --cache/--runs after the verb (issue 31), move them before it. Remove when
-    that lands (the test then runs the guide's line unchanged)."""
-    flags = re.findall(r" (--(?:cache|runs) \S+)", command)
-    for flag in flags:
-        command = command.replace(" " + flag, "")
-    return command.replace("dualnerf run", "dualnerf " + " ".join(flags) + " run", 1)
 
 
 def process_table() -> dict[int, tuple[int, str]]:
@@ -204,12 +180,8 @@ class GuideCluster:
     def run_command(self, place: Place, *extra: str) -> str:
         command = self.line("run").replace("workflows/comparison.toml", "workflows/smoke.toml")
         assert command.startswith("dualnerf run ") and "--cache $SHARED/cache" in command
-        if not cli_takes_global_flags_after_the_verb():
-            warnings.warn("the CLI does not accept --cache/--runs after the verb yet (issue 31): the test moves "
-                          "them before it", stacklevel=2)
-            command = hoist_global_flags(command)
         sets = " ".join(f"--set {shlex.quote(item)}" for item in FAST)
-        return f"{command} --reports {shlex.quote(str(place.reports))} {sets} {' '.join(extra)}"
+        return f"{command} --out {shlex.quote(str(place.reports))} {sets} {' '.join(extra)}"
 
     def start_run(self, place: Place, *extra: str) -> subprocess.Popen:
         place.root.mkdir(parents=True, exist_ok=True)
@@ -257,24 +229,6 @@ def manifest(place: Place, key: str) -> dict:
     return json.loads((place.entry(key) / MANIFEST).read_text())
 
 
-def assert_same_results_as_local(reference: Place, place: Place) -> None:
-    """Same labels and keys, the same files, the same bytes except where a file embeds the cache path or
-    wall-clock times (EMBEDS_PATH_OR_TIME), and equal metrics (the fit's apart from its training time)."""
-    keys = place.keys()
-    assert keys == reference.keys()
-    for label, key in keys.items():
-        mine, theirs = manifest(place, key), manifest(reference, key)
-        assert sorted(mine["files"]) == sorted(theirs["files"]), label
-        differing = {n for n in mine["files"] if mine["files"][n]["sha256"] != theirs["files"][n]["sha256"]}
-        assert differing <= EMBEDS_PATH_OR_TIME.get(mine["stage"], set()), f"{label}: {sorted(differing)} differ"
-        metrics = [json.loads((p.entry(key) / "metrics.json").read_text()) for p in (place, reference)
-                   if (p.entry(key) / "metrics.json").exists()]
-        if metrics:
-            for m in metrics:
-                m.pop("train_time_s", None)
-            assert metrics[0] == metrics[1], label
-
-
 # ---- the tests ----------------------------------------------------------------------------------------------
 def test_the_guides_commands_run_the_smoke_grid_on_the_cluster_like_a_local_run(cluster, smoke_reference):
     deadline = time.monotonic() + 30
@@ -294,7 +248,7 @@ def test_the_guides_commands_run_the_smoke_grid_on_the_cluster_like_a_local_run(
     assert "cluster: 2 step node(s) checked" in err
     assert "(_ray_execute pid=" in err                            # the steps ran in Ray workers
     assert sorted(place.keys()) == sorted(ALL_LABELS)
-    assert_same_results_as_local(smoke_reference, place)
+    e2e.assert_same_results(smoke_reference, place)
     nodes = {}
     record = place.records()[-1]
     for step in record["steps"]:
@@ -374,7 +328,7 @@ def test_a_lost_node_costs_one_retry_that_resumes_from_its_checkpoint(cluster, s
     elapsed = time.perf_counter() - started
     assert code == 0, err[-4000:]
     assert "run: 8 steps (6 computed, 2 cached)" in out
-    assert_same_results_as_local(smoke_reference, place)
+    e2e.assert_same_results(smoke_reference, place)
     fit = manifest(place, fit_key)
     resumed = fit["resumed_from_checkpoint"]
     assert resumed is not None and resumed >= int(first)
@@ -420,7 +374,7 @@ def test_the_probe_stops_a_run_on_a_node_that_differs(cluster, tmp_path):
     assert "nothing was run" in message and message.count("\nNode ") == 1, message
     paragraph = message[message.index("\nNode "):]
     assert f"Ray node {bad[:8]}" in paragraph
-    assert re.search(r"packages\.torch \S+ on the driver, 0\.0\.1 here", paragraph), paragraph
+    assert re.search(r"packages\.torch: key computed for '\S+', this worker has '0\.0\.1'", paragraph), paragraph
     assert re.search(r"clock is \+(8\d|9\d)\.\d s", paragraph), paragraph
     assert "What to do: " in paragraph and "docs/cluster.md" in paragraph
     assert not (place.cache / "objects").exists() or not list((place.cache / "objects").iterdir())
@@ -443,10 +397,10 @@ def test_a_relative_runs_folder_is_resolved_before_steps_get_their_log_paths(tmp
 
 def test_guide_blocks_are_single_commands_the_test_can_run():
     blocks = guide_blocks()
-    assert {"env", "token", "head", "worker", "gpu-worker", "status", "run"} <= set(blocks)
+    assert set(blocks) == {"env", "token", "head", "worker", "gpu-worker", "status", "run"}   # all run here
     for name in ("head", "worker", "gpu-worker", "run", "status"):
         assert "\n" not in blocks[name], name
     assert blocks["run"].startswith("dualnerf run workflows/comparison.toml --executor ray --ray-address $HEAD:")
     assert "--cache $SHARED/cache" in blocks["run"] and "--runs $SHARED/runs" in blocks["run"]
-    hoisted = hoist_global_flags(blocks["run"])
-    assert hoisted.startswith("dualnerf --cache $SHARED/cache --runs $SHARED/runs run workflows/comparison.toml")
+    # Every sh block of the guide is one of these (tests/test_docs_commands.py leaves them to this file).
+    assert len(re.findall(r"```sh\n", GUIDE.read_text(encoding="utf-8"))) == len(blocks)
