@@ -202,7 +202,9 @@ def shared_place(cluster: GuideCluster, name: str) -> Place:
 
 
 @pytest.fixture(scope="module")
-def cluster(tmp_path_factory):
+def cluster(tmp_path_factory, smoke_reference):
+    """The guide's cluster. After the local reference run: it has built the field kernels (nodes that start
+    while one is building would race for torch's build folder), and the two do not share the cores."""
     shared = tmp_path_factory.mktemp("shared")
     started = time.perf_counter()
     guide = GuideCluster(shared)

@@ -39,6 +39,7 @@ import logging
 import os
 import subprocess
 import threading
+import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -62,14 +63,22 @@ def grid_kernel():
     return _state["module"]
 
 
-def _build():
+def _build(attempts: int = 3):
     try:
         from torch.utils.cpp_extension import load
 
         portable = ["-DDUALNERF_NO_AVX512"] if _portable_build() else []
-        return load(build_name(), [str(p) for p in _SOURCES],
-                    extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", *portable], extra_ldflags=["-fopenmp"],
-                    verbose=False)
+        for attempt in range(attempts):
+            try:
+                return load(build_name(), [str(p) for p in _SOURCES],
+                            extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", *portable],
+                            extra_ldflags=["-fopenmp"], verbose=False)
+            # Another process (a cluster node sharing this home) replaced the build folder under torch's
+            # lock file: transient, and falling back would change this process's keys (its code path).
+            except FileNotFoundError:
+                if attempt == attempts - 1:
+                    raise
+                time.sleep(1.0 + attempt)
     # No compiler, no ninja, a failed build: the reference path still works.
     except (OSError, RuntimeError, ImportError, subprocess.CalledProcessError) as error:
         log.warning("dualnerf: the C++ field kernels could not be built (%s); using the plain torch "
