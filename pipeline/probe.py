@@ -68,19 +68,21 @@ def check_folder(folder: str, token: str, what: str) -> list[str]:
 
 
 def check_environment(jobs: Sequence[Any]) -> list[str]:
-    """Problems of this process's environment for `jobs` (pipeline.engine.Job): the engine's own check."""
+    """Problems of this process's environment for `jobs` (pipeline.engine.Job): the engine's own check,
+    one line per distinct set of differences, naming the steps that have it."""
     from pipeline.engine import environment_problems
 
-    problems = []
+    found: dict[tuple[str, ...], list[str]] = {}
     for job in jobs:
         try:
             differences = environment_problems(job)
         except Exception as exc:  # noqa: BLE001 - a stage that cannot even load here is the node's problem
             differences = [f"the stage cannot be loaded here ({type(exc).__name__}: {exc})"]
         if differences:
-            problems.append(f"its environment differs from the one step '{job.label}' was keyed for: "
-                            + "; ".join(differences))
-    return problems
+            found.setdefault(tuple(differences), []).append(f"'{job.label}'")
+    return [f"its environment differs from the one step{'s' if len(labels) > 1 else ''} {', '.join(labels)} "
+            f"{'were' if len(labels) > 1 else 'was'} keyed for: " + "; ".join(differences)
+            for differences, labels in found.items()]
 
 
 def probe_here(cache_root: str, run_dir: str, token: str, jobs: list[Any]) -> dict[str, Any]:
