@@ -13,10 +13,10 @@ import shutil
 import sys
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from pipeline.hashing import file_records, list_files, record_problems, write_json_atomic
 
@@ -26,9 +26,17 @@ CHECKSUM_FILE = ".checksums.json"     # written into every checkpoint, last, bef
 DAMAGED_PREFIX = "damaged-"           # damaged checkpoints are moved aside under this name
 
 
+class Fence(Protocol):
+    """The lease a step runs under (pipeline.lease.Lease): scratch is written only while it is held."""
+
+    def held(self) -> bool: ...
+    def ensure_held(self, what: str) -> None: ...
+
+
 class StepContext:
     def __init__(self, *, key: str, params: Any, inputs: dict[str, Path], out_dir: Path, scratch_dir: Path,
-                 log: logging.Logger, threads: int = 1, quiet: bool = True, label: str = ""):
+                 log: logging.Logger, threads: int = 1, quiet: bool = True, label: str = "",
+                 fence: Fence | None = None):
         self.key = key
         self.params = params
         self.inputs = dict(inputs)
@@ -38,6 +46,9 @@ class StepContext:
         self.threads = threads
         self.quiet = quiet
         self.label = label or key[:12]
+        # Checked before every checkpoint rename and progress write: a writer that lost its lease (paused
+        # past it, cut off) must not touch the scratch folder the new holder resumes from.
+        self.fence = fence
         self.records: dict[str, Any] = {}
         self._intact: set[str] = set()     # checkpoints already verified by this context
         self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -87,10 +98,12 @@ class StepContext:
         partial.mkdir()
         try:
             yield partial
+            write_checksums(partial)
+            if self.fence is not None:
+                self.fence.ensure_held(f"write checkpoint {step}")
         except BaseException:
             shutil.rmtree(partial, ignore_errors=True)
             raise
-        write_checksums(partial)
         final = self._checkpoints / f"{step:012d}"
         if final.exists():
             shutil.rmtree(final)
@@ -110,7 +123,8 @@ class StepContext:
     @contextmanager
     def progress(self, total: int, desc: str, initial: int = 0) -> Iterator[ProgressReporter]:
         reporter = ProgressReporter(total, desc, initial, label=self.label, quiet=self.quiet, log=self.log,
-                                    progress_path=self.scratch_dir / PROGRESS_FILE)
+                                    progress_path=self.scratch_dir / PROGRESS_FILE,
+                                    may_write=self.fence.held if self.fence is not None else None)
         try:
             yield reporter
         finally:
@@ -140,9 +154,10 @@ class ProgressReporter:
     scratch folder current (at most twice a second) so `dualnerf status` can show running steps."""
 
     def __init__(self, total: int, desc: str, initial: int, *, label: str, quiet: bool,
-                 log: logging.Logger, progress_path: Path | None):
+                 log: logging.Logger, progress_path: Path | None, may_write: Callable[[], bool] | None = None):
         self.total, self.desc, self.done = max(int(total), 1), desc, int(initial)
         self.quiet, self.log, self.path = quiet, log, progress_path
+        self.may_write = may_write
         self.started = time.time()
         self.start_done = self.done
         self.metrics: dict[str, float] = {}
@@ -185,6 +200,8 @@ class ProgressReporter:
     def _write(self, force: bool = False) -> None:
         now = time.time()
         if self.path is None or (not force and now - self._last_write < 0.5):
+            return
+        if self.may_write is not None and not self.may_write():
             return
         self._last_write = now
         eta = self.eta_s()

@@ -119,11 +119,13 @@ def params_dict(params: Any) -> dict[str, Any]:
 
 
 def step_state(store, key: str) -> str:
-    """cached / running / partial (checkpoints from an earlier attempt exist) / pending."""
+    """cached / running / partial (checkpoints from an earlier attempt exist) / pending. `running` means a
+    lease whose holder is not provably dead (telling a silent holder on another host from a live one takes
+    watching its heartbeat for a ttl; a waiting worker does that, a status display does not)."""
     if store.has(key):
         return "cached"
     holder = store.lease_holder(key)
-    if holder is not None and not holder.is_stale():
+    if holder is not None and not holder.dead_here():
         return "running"
     checkpoints = store.scratch_path(key) / "checkpoints"
     if checkpoints.is_dir() and any(p.name.isdigit() for p in checkpoints.iterdir()):

@@ -50,6 +50,10 @@ class Executor(ABC):
     def wait(self) -> list[tuple[Any, Outcome]]:
         """Block until at least one submitted job finished; return (handle, outcome) pairs."""
 
+    def prepare(self, *, store, run_dir, jobs: list[Job]) -> None:
+        """Called by the runner once, before any job is submitted, with the jobs it may submit (the Ray
+        executor probes its nodes for them)."""
+
     def shutdown(self, interrupted: bool = False) -> None:
         pass
 
@@ -192,49 +196,155 @@ def _outcome_of(get_result) -> Outcome:
                              f"{type(exc).__name__}: {exc}. Rerun to retry; checkpoints are kept.")
 
 
+GIB = 2 ** 30
+# While nothing finishes, how often the Ray executor checks that every step in flight can still be placed
+# on a live node (a step whose only large-enough node died would otherwise wait forever).
+STRANDED_CHECK_S = 10.0
+
+
 class RayExecutor(Executor):
+    """One Ray task per step, reserving the step's hints on one node (num_cpus, num_gpus, memory in bytes),
+    retried once by Ray if its node dies (the retry resumes from the step's checkpoints in the shared cache).
+    With `address` it joins that cluster and runs the start-up probe (pipeline.probe) before any step;
+    without, it starts a local instance on this machine."""
+
     name = "ray"
 
-    def __init__(self, address: str | None = None, max_retries: int = 1, num_cpus: int | None = None):
+    def __init__(self, address: str | None = None, max_retries: int = 1, num_cpus: int | None = None,
+                 probe: bool | None = None):
         try:
             import ray
         except ModuleNotFoundError:
             raise UserError("the ray executor needs the 'ray' package: pip install 'dualnerf-pipeline[ray]'.")
         self._ray = ray
+        self.local = not address
         if not ray.is_initialized():
             if address:
-                ray.init(address=address, include_dashboard=False, log_to_driver=True)
+                _join_cluster(ray, address)
             else:
-                ray.init(num_cpus=num_cpus or cpu_count(), include_dashboard=False)
-        self.cluster_cpus = int(ray.cluster_resources().get("CPU", 1))
+                # "local": a new instance even when a cluster started by `ray start` runs on this machine.
+                ray.init(address="local", num_cpus=num_cpus or cpu_count(), include_dashboard=False)
+        self.probe = (not self.local) if probe is None else probe
         self.slots = 1 << 16          # ray itself queues tasks by resources
         self.cores = 1 << 30          # ... and packs them onto nodes: the runner submits whatever is ready
         self.threads = 1
         self.max_retries = max_retries
+        self.probe_reports: list = []
         self._remote = ray.remote(_ray_execute)
         self._refs: dict = {}
+        self._requests: dict = {}
+        self._refused: list[tuple[Any, Outcome]] = []
+
+    def nodes(self) -> list[dict[str, Any]]:
+        from pipeline.probe import step_nodes
+
+        return step_nodes(self._ray)
 
     def threads_for(self, resources: Resources) -> int:
-        # A stage asking for more CPUs than the cluster has would never be scheduled: clamp.
-        return max(1, min(resources.cpus, self.cluster_cpus))
+        if self.local:
+            # One machine: like the process pool, a hint above its cores runs on all of them.
+            largest = max((n["Resources"].get("CPU", 0) for n in self.nodes()), default=1)
+            return max(1, min(resources.cpus, int(largest)))
+        return max(1, resources.cpus)     # a cluster: a request no node can hold fails at once (submit)
+
+    def prepare(self, *, store, run_dir, jobs: list[Job]) -> None:
+        if not self.probe:
+            return
+        from pipeline.probe import CLOCK_WARN_S, clock_summary, probe_cluster
+
+        started = time.perf_counter()
+        self.probe_reports = probe_cluster(self._ray, cache_root=store.root, run_dir=run_dir,
+                                           jobs=jobs)
+        for report in self.probe_reports:
+            if report.offset_s is not None and abs(report.offset_s) - report.uncertainty_s > CLOCK_WARN_S:
+                print(f"cluster: warning: the clock of node {report.name} is {report.offset_s:+.1f} s off the "
+                      f"driver's; synchronise it (NTP / chrony): run records and logs carry wall-clock times",
+                      file=sys.stderr)
+        print(f"cluster: {len(self.probe_reports)} step node(s) checked in {time.perf_counter() - started:.1f} s: "
+              f"same cache and runs folder, same environment; {clock_summary(self.probe_reports)}", file=sys.stderr)
 
     def submit(self, job: Job, resources: Resources):
         cpus = self.threads_for(resources)
         job = dataclasses.replace(job, threads=cpus)
-        ref = self._remote.options(num_cpus=cpus, num_gpus=resources.gpus,
-                                   max_retries=self.max_retries).remote(job)
+        request = {"CPU": float(cpus), "GPU": float(resources.gpus), "memory": float(int(resources.memory_gb * GIB))}
+        problem = self._unplaceable(job, request)
+        if problem:
+            handle = ("refused", job.key)
+            self._refused.append((handle, Outcome(job.key, "failed", error=problem, user_error=True,
+                                                  started=time.time(), finished=time.time())))
+            return handle
+        options = {"num_cpus": cpus, "max_retries": self.max_retries}
+        if resources.gpus > 0:
+            options["num_gpus"] = resources.gpus
+        if request["memory"] > 0:
+            options["memory"] = int(request["memory"])
+        ref = self._remote.options(**options).remote(job)
         self._refs[ref] = job
+        self._requests[ref] = request
         return ref
 
+    def _unplaceable(self, job: Job, request: dict[str, float]) -> str | None:
+        """Why no live node can ever hold `request` (None if one can): named stage, request, largest node."""
+        nodes = self.nodes()
+
+        def fits(node) -> list[bool]:
+            have = node.get("Resources", {})
+            return [have.get(name, 0.0) >= amount for name, amount in request.items() if amount > 0]
+
+        if any(all(fits(n)) for n in nodes):
+            return None
+        stage = job.stage_ref.rpartition(":")[2]
+        try:
+            from pipeline.registry import load_ref
+
+            stage = load_ref(job.stage_ref).name
+        except (ImportError, AttributeError, TypeError):
+            pass
+        asked = (f"{int(request['CPU'])} CPU(s), {request['GPU']:g} GPU(s), "
+                 f"{request['memory'] / GIB:.1f} GiB memory")
+        if nodes:
+            largest = max(nodes, key=lambda n: (sum(fits(n)), n["Resources"].get("GPU", 0),
+                                                n["Resources"].get("CPU", 0), n["Resources"].get("memory", 0)))
+            have = largest["Resources"]
+            where = (f"the largest node, {largest.get('NodeManagerAddress', '?')} (Ray node {largest['NodeID'][:8]}), "
+                     f"has {int(have.get('CPU', 0))} CPU(s), {have.get('GPU', 0):g} GPU(s), "
+                     f"{have.get('memory', 0) / GIB:.1f} GiB memory")
+        else:
+            where = "the cluster has no live node with CPUs or GPUs"
+        return (f"step '{job.label}' (stage {stage}) asks for {asked} on one node, and no node of the Ray "
+                f"cluster has that much ({where}), so it could never start. Add a node that large, or lower "
+                f"the step's request (e.g. --set {stage}.device=cpu, --set {stage}.num_threads=N).")
+
     def wait(self) -> list[tuple[Any, Outcome]]:
-        ready, _ = self._ray.wait(list(self._refs), num_returns=1)
+        if self._refused:
+            return [self._refused.pop(0)]
+        while True:
+            ready, _ = self._ray.wait(list(self._refs), num_returns=1, timeout=STRANDED_CHECK_S)
+            if ready:
+                break
+            stranded = self._stranded()
+            if stranded:
+                return stranded
         out = []
         for ref in ready:
             job = self._refs.pop(ref)
+            self._requests.pop(ref, None)
             outcome = _outcome_of(functools.partial(self._ray.get, ref))
             if outcome.key == "?":
                 outcome = Outcome(job.key, "failed", error=outcome.error)
             out.append((ref, outcome))
+        return out
+
+    def _stranded(self) -> list[tuple[Any, Outcome]]:
+        """Steps in flight that no live node can hold any more (their node died, and no other is large
+        enough): cancelled and failed, instead of waiting forever."""
+        out = []
+        for ref, job in list(self._refs.items()):
+            problem = self._unplaceable(job, self._requests[ref])
+            if problem:
+                self._ray.cancel(ref, force=True)
+                del self._refs[ref], self._requests[ref]
+                out.append((ref, Outcome(job.key, "failed", error=problem, user_error=True, finished=time.time())))
         return out
 
     def shutdown(self, interrupted: bool = False) -> None:
@@ -243,9 +353,30 @@ class RayExecutor(Executor):
                 self._ray.cancel(ref)
 
 
+def _join_cluster(ray, address: str) -> None:
+    """ray.init(address), with the cluster's token authentication spelled out when it refuses us."""
+    try:
+        ray.init(address=address, include_dashboard=False, log_to_driver=True)
+    except Exception as exc:            # reworded below when it is the authentication
+        text = str(exc)
+        if "InvalidAuthToken" in text or "uthentication" in text:
+            raise UserError(
+                f"the Ray cluster at {address} refused this driver: it uses token authentication (Ray 2.60 "
+                f"turns it on at the head when a token exists). Set RAY_AUTH_MODE=token and give the "
+                f"cluster's token (RAY_AUTH_TOKEN_PATH=FILE, RAY_AUTH_TOKEN=..., or ~/.ray/auth_token) here, "
+                f"as on every node (see docs/cluster.md). Ray said: {text.strip().splitlines()[0]}") from None
+        raise
+
+
 def _ray_execute(job: Job) -> Outcome:
+    import ray
+
     os.environ["OMP_NUM_THREADS"] = str(job.threads)
-    return execute_job(job)
+    context = ray.get_runtime_context()
+    placement = {"executor": "ray", "node_id": context.get_node_id(), "node_ip": ray.util.get_node_ip_address(),
+                 "assigned": context.get_assigned_resources(), "gpu_ids": [str(g) for g in ray.get_gpu_ids()],
+                 "cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES")}
+    return execute_job(job, placement=placement)
 
 
 def make_executor(kind: str, *, jobs: int = 1, address: str | None = None) -> Executor:

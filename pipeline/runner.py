@@ -22,6 +22,7 @@ from pathlib import Path
 
 from pipeline.dag import KeyedStep, Step, compute_keys, params_dict
 from pipeline.engine import Job, Outcome
+from pipeline.errors import UserError
 from pipeline.executors import Executor
 from pipeline.runrecord import RUN_FILE, RunRecord, safe_name
 from pipeline.store import Store
@@ -135,6 +136,7 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
     Raises a UserError before anything runs if a step is invalid. Shuts the executor down at the end.
     The record goes to `run_dir` (or `run_dir-N` if another run owns that folder; see result.run_file)."""
     keyed = compute_keys(steps, registry=registry, store=store)
+    run_dir = Path(run_dir).absolute()     # step logs are written where the step runs: no relative paths
     store.remove_orphan_tmp()           # what killed earlier runs left half-written
     record = RunRecord(claim_run_dir(run_dir), store.root)
     # Several steps at once: periodic log lines, not tqdm bars fighting over one terminal line.
@@ -176,6 +178,12 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
     busy = 0                                   # threads of the jobs in flight
     interrupted = False
     try:
+        try:
+            executor.prepare(store=store, run_dir=record.dir, jobs=[j for k, j in jobs.items() if not store.has(k)])
+        except UserError as exc:
+            record.data.update(status="failed", error=str(exc), finished=time.time())
+            record.save()
+            raise
         while True:
             changed = False
             runnable = []
@@ -198,7 +206,7 @@ def run_steps(steps: Sequence[Step], *, registry: Mapping[str, str], store: Stor
             # however the steps happen to be scheduled, so a result does not depend on what ran beside
             # it (float sums differ between thread counts). Jobs start while their hints fit the cores.
             for key in runnable:
-                resources = by_key[key][0].stage_cls.resources
+                resources = by_key[key][0].stage_cls.resources_for(by_key[key][0].params)
                 threads = executor.threads_for(resources)
                 if len(in_flight) >= executor.slots or (in_flight and busy + threads > executor.cores):
                     break

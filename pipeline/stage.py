@@ -15,7 +15,7 @@ A stage is a class with class-level declarations and a `run(ctx)` method:
         Params = FitParams
         upstream = ("dataset",)       # names of other steps' results this stage reads
         external = ()                 # names of user files/folders this stage reads
-        resources = Resources(cpus=2, gpus=0, memory_gb=3)
+        resources = Resources(cpus=2, gpus=0, memory_gb=3)   # per step: resources_for(params)
         nonsemantic_params = frozenset({"num_threads"})
         packages = ("torch",)         # their versions enter the key (environment fingerprint)
         # optional: runtime_environment(params) -> dict (keyed), provenance() -> dict (manifest only)
@@ -47,11 +47,16 @@ from pipeline.errors import UserError
 
 @dataclass(frozen=True)
 class Resources:
-    """Scheduling hints; executors use them to size process pools and Ray tasks."""
+    """Scheduling hints; executors use them to size process pools and Ray tasks (Ray reserves them on one
+    node: num_cpus, num_gpus, memory)."""
 
     cpus: int = 1
     gpus: float = 0.0
     memory_gb: float = 2.0
+
+    def describe(self) -> str:
+        gpus = f"{self.gpus:g} GPU{'s' if self.gpus != 1 else ''}"
+        return f"{self.cpus} CPU{'s' if self.cpus != 1 else ''}, {gpus}, {self.memory_gb:g} GB memory"
 
 
 class Progress(Protocol):
@@ -93,6 +98,20 @@ class Stage(ABC):
     resources: ClassVar[Resources] = Resources()
     nonsemantic_params: ClassVar[frozenset[str]] = frozenset()
     packages: ClassVar[tuple[str, ...]] = ()
+
+    @classmethod
+    def resources_for(cls, params: Any) -> Resources:
+        """The hints for one step, from its params: `resources`, with one GPU when the step runs on CUDA
+        (a `device` param of "cuda" or "cuda:N") and the stage declared none, and `num_threads` CPUs when
+        that param is set (> 0). Override for other rules."""
+        hints = cls.resources
+        device = str(getattr(params, "device", "") or "")
+        if device.startswith("cuda") and hints.gpus <= 0:
+            hints = dataclasses.replace(hints, gpus=1.0)
+        threads = getattr(params, "num_threads", 0)
+        if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:
+            hints = dataclasses.replace(hints, cpus=threads)
+        return hints
 
     @abstractmethod
     def run(self, ctx: StageContext) -> None:

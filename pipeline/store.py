@@ -2,10 +2,11 @@
 
 Layout under the cache root:
     objects/<k[:2]>/<k>/     published results: the stage's output files + manifest.json (written last)
-    tmp/<k>.<nonce>/         work in progress; published by one os.rename of the whole folder
+    tmp/<k>.<token>/         work in progress of the lease holder with <token>; published by one
+                             os.rename of the whole folder
     scratch/<k>/             in-stage checkpoints and progress.json; kept across failed or killed
                              attempts, deleted after a successful publish (and by gc when stale)
-    leases/<k>.lease         who is computing <k> right now (see pipeline.lease)
+    leases/<k>.lease         who is computing <k> right now, and its heartbeat file (pipeline.lease)
     quarantine/<k>.<time>/   results whose files did not match their manifest; never used again
     pins/<k>                 gc roots besides run records
     runs/<h>.json            {"run_file": path}: every run record that used this store (gc roots,
@@ -24,7 +25,7 @@ import os
 import shutil
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,7 @@ from typing import Any
 from pipeline.errors import UserError
 from pipeline.hashing import ContentHasher, file_records, list_files, record_problems, write_json_atomic
 from pipeline.keys import FORMAT_VERSION
-from pipeline.lease import Lease, read_lease
+from pipeline.lease import Lease, LeaseWatch, beat_path, read_lease
 
 MANIFEST = "manifest.json"
 log = logging.getLogger("pipeline.store")
@@ -105,34 +106,71 @@ class Store:
     def lease_holder(self, key: str):
         return read_lease(self.leases / f"{key}.lease")
 
-    def new_tmp(self, key: str) -> Path:
-        path = self.tmp / f"{key}.{uuid.uuid4().hex[:12]}"
+    def new_tmp(self, key: str, token: str | None = None) -> Path:
+        """tmp/<key>.<token>: a lease holder's work in progress, named by its lease token so that nobody
+        mistakes a live writer's folder for an orphan (without a token: a random name, for tests)."""
+        path = self.tmp / f"{key}.{token or uuid.uuid4().hex[:12]}"
         path.mkdir(parents=True)
         return path
 
     # ---- orphaned work in progress --------------------------------------------------------------
-    def orphan_tmp(self) -> list[Path]:
-        """tmp/<key>.<nonce> folders whose writer is dead: nobody holds a live lease on <key>. A writer
-        creates its tmp folder only while holding the lease and removes or publishes it before release,
-        so such a folder is what a killed process left behind and nobody will ever use."""
+    def orphan_tmp(self, key: str | None = None, expired: frozenset[str] = frozenset()) -> list[Path]:
+        """tmp/<key>.<token> folders that no live writer owns: nobody holds a lease on <key>, or its holder
+        is provably dead (a dead process on this host), or the lease belongs to another token (the folder's
+        writer lost its lease, so it will never publish it). `expired`: keys whose leases an observer saw
+        expire (gc). No clock is read: a writer creates its folder only while holding the lease, under its
+        token, and removes or publishes it before release, so a live writer's folder is never listed,
+        whatever the clocks of the hosts sharing the cache say."""
         if not self.tmp.is_dir():
             return []
         found = []
         for path in sorted(self.tmp.iterdir()):
-            holder = self.lease_holder(path.name.split(".")[0])
-            if holder is None or holder.is_stale():
+            folder_key, _, tag = path.name.partition(".")
+            if key is not None and folder_key != key:
+                continue
+            holder = self.lease_holder(folder_key)
+            if holder is None or holder.dead_here() or holder.token != tag or folder_key in expired:
                 found.append(path)
         return found
 
-    def remove_orphan_tmp(self) -> list[str]:
-        """Delete the folders `orphan_tmp` lists; returns their names (tmp/<key>.<nonce>)."""
+    def remove_orphan_tmp(self, key: str | None = None) -> list[str]:
+        """Delete the folders `orphan_tmp` lists; returns their names (tmp/<key>.<token>)."""
         removed = []
-        for path in self.orphan_tmp():
+        for path in self.orphan_tmp(key):
             shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
             removed.append(f"{self.tmp.name}/{path.name}")
         if removed:
             log.info("removed %d temporary folder(s) left by killed writers: %s", len(removed), ", ".join(removed))
         return removed
+
+    def watch_leases(self, seconds: float | None = None, poll_s: float = 0.5) -> tuple[set[str], set[str]]:
+        """(expired, live) keys among the current leases, judged the observer's way: a holder that is dead
+        here is expired at once; the others are watched for up to `seconds` (default: the longest holder
+        ttl) on this process's monotonic clock, and those whose heartbeat did not change are expired."""
+        expired, watched = set(), {}
+        for path in sorted(self.leases.glob("*.lease")) if self.leases.is_dir() else []:
+            holder = read_lease(path)
+            if holder is None:
+                continue
+            key = path.name.removesuffix(".lease")
+            if holder.dead_here():
+                expired.add(key)
+            else:
+                watched[key] = (path, holder)
+        if watched:
+            watch = LeaseWatch(default_ttl_s=self.lease_ttl_s)
+            ttl = max(h.ttl_s or self.lease_ttl_s for _, h in watched.values())
+            deadline = watch.clock() + (ttl if seconds is None else seconds) + poll_s
+            while watched and watch.clock() < deadline:
+                for key, (path, holder) in list(watched.items()):
+                    if read_lease(path) != holder:          # released or taken over meanwhile: not expired
+                        del watched[key]
+                    elif watch.expired(path, holder):
+                        expired.add(key)
+                        del watched[key]
+                if watched:
+                    time.sleep(poll_s)
+        return expired, set(watched)
 
     # ---- reading -------------------------------------------------------------------------------
     def has(self, key: str) -> bool:
@@ -179,8 +217,9 @@ class Store:
                     yield folder.name, folder
 
     # ---- writing -------------------------------------------------------------------------------
-    def publish(self, key: str, tmp: Path, manifest: dict[str, Any]) -> Path:
-        """Hash the outputs in `tmp`, write the manifest last, and rename the folder into place."""
+    def publish(self, key: str, tmp: Path, manifest: dict[str, Any], fence: Callable[[], None] | None = None) -> Path:
+        """Hash the outputs in `tmp`, write the manifest last, and rename the folder into place. `fence` is
+        called right before the rename; it raises (pipeline.lease.LeaseLost) if the writer lost its lease."""
         if (tmp / MANIFEST).exists():
             raise StoreError(f"the stage wrote '{MANIFEST}' into its output folder; that name is "
                              f"reserved for the store. Rename the output file.")
@@ -189,6 +228,8 @@ class Store:
         _write_manifest(tmp, manifest)
         final = self.object_path(key)
         final.parent.mkdir(parents=True, exist_ok=True)
+        if fence is not None:
+            fence()
         for _ in range(2):
             try:
                 self._rename_into_place(tmp, final)
@@ -270,13 +311,16 @@ class Store:
             todo.extend(manifest.get("key_inputs", {}).get("upstream", {}).values())
         return reached
 
-    def gc(self, roots: set[str], *, stale_after_s: float = 7 * 86400, dry_run: bool = False) -> GcReport:
-        """Remove published entries not reachable from `roots` + pins; tmp folders and scratch
-        folders with no live lease that are older than `stale_after_s` (scratch of published keys
-        always); leases of dead holders; the quarantine."""
+    def gc(self, roots: set[str], *, stale_after_s: float = 7 * 86400, dry_run: bool = False,
+           watch_s: float | None = None) -> GcReport:
+        """Remove published entries not reachable from `roots` + pins; tmp folders no live writer owns;
+        scratch folders with no live lease that are older than `stale_after_s` (scratch of published keys
+        always); leases of dead or silent holders; the quarantine. Leases whose holders are not provably
+        dead are watched first (up to their ttl, `watch_s` to override) to tell live writers from dead ones."""
         report = GcReport()
         keep = self.closure(set(roots) | self.pinned())
         now = time.time()
+        expired, _ = self.watch_leases(watch_s)
 
         def remove(path: Path, bucket: list[str], name: str) -> None:
             report.freed_bytes += folder_size(path) if path.is_dir() else path.stat().st_size
@@ -289,25 +333,27 @@ class Store:
                 report.kept += 1
             else:
                 remove(folder, report.removed, key)
-        for parent in (self.tmp, self.scratch):
-            if not parent.is_dir():
-                continue
-            for path in parent.iterdir():
-                key = path.name.split(".")[0]
+        for path in self.orphan_tmp(expired=frozenset(expired)):
+            remove(path, report.removed_other, f"{self.tmp.name}/{path.name}")
+        if self.scratch.is_dir():
+            for path in self.scratch.iterdir():
+                key = path.name
                 holder = self.lease_holder(key)
-                if holder is not None and not holder.is_stale():
+                if holder is not None and key not in expired:
                     continue
-                published_scratch = parent == self.scratch and self.has(key)
-                if published_scratch or now - path.stat().st_mtime > stale_after_s or parent == self.tmp:
-                    remove(path, report.removed_other, f"{parent.name}/{path.name}")
+                if self.has(key) or now - path.stat().st_mtime > stale_after_s:
+                    remove(path, report.removed_other, f"{self.scratch.name}/{path.name}")
         if self.leases.is_dir():
-            for path in self.leases.glob("*.lease"):
-                holder = self.lease_holder(path.name.removesuffix(".lease"))
-                if holder is not None and holder.is_stale():
-                    remove(path, report.removed_other, f"leases/{path.name}")
+            for key in sorted(expired):
+                path = self.leases / f"{key}.lease"
+                holder = read_lease(path)
+                if holder is None:
+                    continue
+                remove(path, report.removed_other, f"leases/{path.name}")
+                beat = beat_path(path, holder.token)
+                if beat.exists():
+                    remove(beat, report.removed_other, f"leases/{beat.name}")
         if self.quarantine_dir.is_dir():
             for path in self.quarantine_dir.iterdir():
                 remove(path, report.removed_other, f"quarantine/{path.name}")
         return report
-
-

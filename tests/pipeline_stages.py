@@ -3,11 +3,13 @@
     python -m tests.pipeline_stages SPEC.json      runs the steps in SPEC and prints the result JSON
 
 SPEC = {"cache": dir, "run_dir": dir, "executor": "serial"|"process"|"ray", "jobs": n,
-        "die": null | "before_publish" | "mid_manifest",
+        "die": null | "before_publish" | "mid_manifest", "lease_ttl_s": s (default 30),
+        "clock_offset_s": s (this process's wall clock runs that far ahead, as on a host with a skewed clock),
         "steps": [{"stage", "params", "label", "inputs": {name: step index | {"external": path}}}]}
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -26,6 +28,7 @@ REGISTRY = {
     "fail": "tests.pipeline_stages:FailStage",
     "vandal": "tests.pipeline_stages:VandalStage",
     "suicide": "tests.pipeline_stages:SuicideStage",
+    "device_probe": "tests.pipeline_stages:DeviceProbeStage",
 }
 
 
@@ -45,6 +48,7 @@ class CountParams:
     step_seconds: float = 0.0  # non-semantic: slows the stage so a test can interrupt it
     gate: str = ""            # non-semantic: at step 1 wait until this file exists
     native_sigterm: bool = False  # non-semantic: SIGTERM kills without unwinding, as after glog's handler
+    checkpoint_trace: str = ""    # non-semantic: file the stage appends "<pid> checkpoint <i>" to after each one
 
 
 class CountStage(Stage):
@@ -53,7 +57,7 @@ class CountStage(Stage):
     name = "count"
     version = "1"
     Params = CountParams
-    nonsemantic_params = frozenset({"trace", "step_seconds", "gate", "native_sigterm"})
+    nonsemantic_params = frozenset({"trace", "step_seconds", "gate", "native_sigterm", "checkpoint_trace"})
 
     def run(self, ctx) -> None:
         p = ctx.params
@@ -75,6 +79,7 @@ class CountStage(Stage):
                 _append(p.trace, f"{os.getpid()} {i}")
                 with ctx.checkpoint(i) as folder:
                     (folder / "state.json").write_text(json.dumps({"total": total}))
+                _append(p.checkpoint_trace, f"{os.getpid()} checkpoint {i}")
                 bar.update(1, total=total)
                 if p.step_seconds:
                     time.sleep(p.step_seconds)
@@ -180,6 +185,43 @@ class SuicideStage(FailStage):
         os.kill(os.getpid(), signal.SIGKILL)
 
 
+@dataclass(frozen=True)
+class DeviceProbeParams:
+    device: str = "cpu"
+    num_threads: int = 0
+    gpus: float = 0.0              # > 0: ask for this many GPUs whatever the device
+    tag: str = ""
+
+
+class DeviceProbeStage(Stage):
+    """A stage stub for placement tests: writes what it was given where it ran (CUDA_VISIBLE_DEVICES, the
+    GPU ids and resources Ray assigned, its node and that node's resources)."""
+
+    name = "device_probe"
+    version = "1"
+    Params = DeviceProbeParams
+    resources = Resources(cpus=1, gpus=0, memory_gb=1.5)
+
+    @classmethod
+    def resources_for(cls, params) -> Resources:
+        hints = super().resources_for(params)
+        return dataclasses.replace(hints, gpus=params.gpus) if params.gpus > 0 else hints
+
+    def run(self, ctx) -> None:
+        seen = {"cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES"), "threads": ctx.threads}
+        try:
+            import ray
+
+            if ray.is_initialized():
+                context = ray.get_runtime_context()
+                node = next(n for n in ray.nodes() if n["NodeID"] == context.get_node_id())
+                seen.update(gpu_ids=[str(g) for g in ray.get_gpu_ids()], node_id=context.get_node_id(),
+                            node_resources=node["Resources"], assigned=context.get_assigned_resources())
+        except ImportError:
+            pass
+        (ctx.out_dir / "seen.json").write_text(json.dumps(seen, sort_keys=True))
+
+
 def build_steps(spec_steps: list[dict]):
     from pipeline.dag import External, Step
 
@@ -213,11 +255,16 @@ def main(argv: list[str]) -> int:
     from pipeline.store import Store
 
     spec = json.loads(Path(argv[0]).read_text())
+    if spec.get("clock_offset_s"):
+        real_time, offset = time.time, float(spec["clock_offset_s"])
+        time.time = lambda: real_time() + offset
     if spec.get("die"):
         _die_at(spec["die"])
     steps = build_steps(spec["steps"])
-    executor = make_executor(spec.get("executor", "serial"), jobs=spec.get("jobs", 1))
-    result = run_steps(steps, registry=REGISTRY, store=Store(spec["cache"]), executor=executor,
+    executor = make_executor(spec.get("executor", "serial"), jobs=spec.get("jobs", 1),
+                             address=spec.get("ray_address"))
+    store = Store(spec["cache"], lease_ttl_s=spec.get("lease_ttl_s", 30.0))
+    result = run_steps(steps, registry=REGISTRY, store=store, executor=executor,
                        run_dir=Path(spec["run_dir"]), quiet=True)
     print(json.dumps({"results": [str(result.results.get(s)) for s in steps],
                       "status": [result.status[s] for s in steps],

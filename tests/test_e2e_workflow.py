@@ -115,8 +115,13 @@ class Place:
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory) -> Place:
-    place = Place(tmp_path_factory.mktemp("reference"))
+def reference(smoke_reference) -> Place:
+    """The uninterrupted local run of the smoke grid (tests/e2e_fixtures.py: shared by the session)."""
+    return smoke_reference
+
+
+def run_reference(root: Path) -> Place:
+    place = Place(root)
     code, out, err, elapsed = place.run()
     assert code == 0, err
     print(f"\nreference run (full smoke grid, FAST settings): {elapsed:.1f} s")

@@ -15,7 +15,11 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCE = ("dualnerf", "pipeline", "stages", "experiments")
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 # Flags of other programs that the docs show in full commands.
-OTHER_TOOLS_FLAGS = {"--no-deps", "--upgrade", "--force-reinstall", "--help", "--version", "--collect-only"}
+OTHER_TOOLS_FLAGS = {"--no-deps", "--upgrade", "--force-reinstall", "--help", "--version", "--collect-only",
+                     # ray start / ray status (docs/cluster.md and the cluster probe's messages)
+                     "--head", "--address", "--port", "--num-cpus", "--num-gpus", "--block", "--temp-dir",
+                     # python -m benchmarks.simulate_cluster (docs/cluster.md)
+                     "--run", "--nodes", "--cores"}
 FILE_SUFFIXES = {"json", "jsonl", "py", "toml", "png", "mp4", "md", "h", "cpp", "pt", "log", "csv", "txt", "cff"}
 FLAG = re.compile(r"(?<![\w-])--[a-z][a-z0-9-]*[a-z0-9]")
 

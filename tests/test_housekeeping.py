@@ -35,10 +35,10 @@ def make_orphans(store: Store) -> tuple[Path, Path, Path, object]:
     dead = store.new_tmp("b" * 64)
     store.leases.mkdir(parents=True, exist_ok=True)
     (store.leases / f"{'b' * 64}.lease").write_text(json.dumps(
-        {"host": HOST, "pid": dead_pid(), "token": "t", "expires": time.time() + 3600}))
+        {"host": HOST, "pid": dead_pid(), "token": "t", "ttl_s": 3600}))
     live_lease = store.lease("c" * 64)
     assert live_lease.try_acquire()
-    live = store.new_tmp("c" * 64)
+    live = store.new_tmp("c" * 64, live_lease.token)
     return killed, dead, live, live_lease
 
 

@@ -40,6 +40,7 @@ import logging
 import os
 import subprocess
 import threading
+import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -63,17 +64,25 @@ def grid_kernel():
     return _state["module"]
 
 
-def _build():
+def _build(attempts: int = 3):
     try:
         from torch.utils.cpp_extension import _get_build_directory, load
 
         name = build_name()
         build_directory = Path(_get_build_directory(name, verbose=False))
         portable = ["-DDUALNERF_NO_AVX512"] if _portable_build() else []
-        with _builder_lock(build_directory):
-            return load(name, [str(p) for p in _SOURCES], build_directory=str(build_directory),
-                        extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", *portable], extra_ldflags=["-fopenmp"],
-                        verbose=False)
+        for attempt in range(attempts):
+            try:
+                with _builder_lock(build_directory):
+                    return load(name, [str(p) for p in _SOURCES], build_directory=str(build_directory),
+                                extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", *portable],
+                                extra_ldflags=["-fopenmp"], verbose=False)
+            # A process on another node sharing this home (where the lock may not reach) replaced the build
+            # folder under torch's lock: transient, and falling back would change this process's keys.
+            except FileNotFoundError:
+                if attempt == attempts - 1:
+                    raise
+                time.sleep(1.0 + attempt)
     # No compiler, no ninja, a failed build: the reference path still works.
     except (OSError, RuntimeError, ImportError, subprocess.CalledProcessError) as error:
         log.warning("dualnerf: the C++ field kernels could not be built (%s); using the plain torch "
