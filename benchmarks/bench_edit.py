@@ -41,19 +41,17 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args([] if argv is None else argv)
 
     import numpy as np
-    import torch
 
     from dualnerf.dataset import load_dataset
     from dualnerf.idu import IDUConfig, IterativeDatasetUpdate
     from dualnerf.io import PreprocessConfig, preprocess
     from dualnerf.model import load_model
+    from dualnerf.numerics import use_threads
     from dualnerf.rendering import render_view
     from dualnerf.scenes import generate_scene, load_gt_edit, load_scene_spec
     from pipeline.context import StepContext
     from stages.edit import EditParams, build_editor, build_encoder
     from stages.fit import FitParams, FitStage
-
-    from dualnerf.numerics import use_threads
 
     use_threads(args.threads)           # as the stages: the kernels on --threads, torch on one
     print(f"cores: {os.cpu_count()}, kernel threads: {args.threads}; timings include other load (check `uptime`)")

@@ -121,7 +121,6 @@ def dual_vs_single(static_field, ds, steps: int = 12) -> tuple[float, float]:
 
 
 def main() -> None:
-    import torch
 
     from dualnerf.dataset import load_dataset
 

@@ -114,7 +114,6 @@ def load_fitted_field(args, tmp: Path):
 
     from dualnerf.dataset import load_dataset
     from dualnerf.model import load_model
-
     from dualnerf.numerics import use_threads
 
     use_threads(args.threads)          # as the stages run: the kernels on --threads, torch on one

@@ -120,7 +120,7 @@ def test_mode_share_closed_forms():
     gt = [o + rng.normal(0, 0.2, o.shape) for o in original]
     alt = [o + rng.normal(0, 0.2, o.shape) for o in original]
     masks = [np.ones((8, 8), bool)] * 2
-    share = lambda renders: mode_share(renders, gt, [alt], original, masks)  # noqa: E731
+    share = lambda renders: mode_share(renders, gt, [alt], original, masks)
     assert share(gt) == pytest.approx(1.0) and share(alt) == pytest.approx(0.0, abs=1e-12)
     assert share([(g + a) / 2 for g, a in zip(gt, alt)]) == pytest.approx(0.5)
     assert share([o + 0.3 * (a - o) + 0.6 * (g - o) for o, g, a in zip(original, gt, alt)]) == pytest.approx(2 / 3)

@@ -24,7 +24,7 @@ def test_a_stale_torch_lock_from_a_killed_build_does_not_hang_the_next_load(tmp_
     (root / name / "lock").write_text("")
     env = dict(os.environ, TORCH_EXTENSIONS_DIR=str(root))
     done = subprocess.run([sys.executable, "-c", "from dualnerf import kernels; print(kernels.kernel_name())"],
-                          env=env, capture_output=True, text=True, timeout=300)
+                          check=False, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "fused-cpp"
     assert not (root / name / "lock").exists()

@@ -24,10 +24,10 @@ import shutil
 from pathlib import Path
 
 from experiments.report import differences as RS
-from experiments.report.convergence import convergence_html, convergence_summary, write_convergence
-from experiments.report.curves import CURVE_FIGURES, load_curves, write_curves
 from experiments.report import flagging as FL
 from experiments.report import joint as J
+from experiments.report.convergence import convergence_html, convergence_summary, write_convergence
+from experiments.report.curves import CURVE_FIGURES, load_curves, write_curves
 from experiments.report.images import write_image_grid, write_path_strip
 from experiments.report.page import metrics_table_html, statistics_html, title_rows, write_html
 from experiments.report.parameter_plots import write_parameter_plots
@@ -131,8 +131,8 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict, refe
                   "edit_dir": None if r.edit_dir is None else str(r.edit_dir)} for r in rows]}, indent=1))
     stats = statistics_html(columns, table, docs, paired, reference_label, per_scene, param_plots)
     first = 1 if paired else 0                                   # after the differences to the reference
-    joint = [f"<h2>Edit and background together</h2><img src='{scatter}' alt='in-mask vs outside-mask PSNR'>"
-             f"<p>{J.SCATTER_CAPTION}</p>"] if scatter else []
+    joint = [(f"<h2>Edit and background together</h2><img src='{scatter}' alt='in-mask vs outside-mask PSNR'>"
+             f"<p>{J.SCATTER_CAPTION}</p>")] if scatter else []
     joint += [FL.html_section(flag_entries), J.ground_truth_html(gt_entries)]
     return write_html(out_dir, title_rows=title, columns=columns, table=table, docs=docs,
                       grid_labels=grid_labels, strip_labels=strip_labels, curves=curves, videos=videos,

@@ -87,10 +87,10 @@ SCATTER_CAPTION = ("In-mask PSNR to the ground-truth edit (did the edit arrive?)
                    "PSNR alone is best for the unedited scene (dashed line: its in-mask PSNR): a row that "
                    "edits less moves left, so read the two together.")
 
-BY_CONSTRUCTION = ["the InstructPix2Pix emulator (it simulates an editor that knows what the instruction "
-                   "means; no component reads it)",
-                   "the edit stage's convergence probe (training curves; a diagnostic, not a metric of the "
-                   "table)"]
+BY_CONSTRUCTION = [("the InstructPix2Pix emulator (it simulates an editor that knows what the instruction "
+                   "means; no component reads it)"),
+                   ("the edit stage's convergence probe (training curves; a diagnostic, not a metric of the "
+                   "table)")]
 
 
 def ground_truth_metrics(rows, docs) -> list[dict]:
