@@ -29,7 +29,7 @@ REWRITES = {
     # test suite itself (make test): `make -n` prints their recipes, and the dualnerf commands in them run
     # as dry runs (the grid, every step and its key: validates the workflow, the overrides and every
     # step's parameters).
-    "make ablation SCENE=campsite": ("@make ablation SCENE=campsite", "a 25-30 minute run"),
+    "make ablation SCENE=campsite": ("@make ablation SCENE=campsite", "a 75-minute run"),
     "make test": ("@make test", "the test suite itself, then a 2-minute smoke run"),
     # Real model weights are not on this machine (and no network): dry runs check every parameter.
     "dualnerf run workflows/ablation.toml --set scene=campsite --set edit.editor=ip2p "
