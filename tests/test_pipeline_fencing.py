@@ -19,13 +19,18 @@ def checkpoint_writers(trace: Path) -> list[tuple[int, int]]:
     return [(int(parts[0]), int(parts[2])) for parts in trace_lines(trace) if parts[1] == "checkpoint"]
 
 
-@pytest.mark.slow
-def test_a_writer_paused_past_its_lease_neither_publishes_nor_writes_scratch(tmp_path):
+def _counting_step(tmp_path, n):
+    """(checkpoint trace, the one-step workflow counting to n at 0.1 s a step, cache folder)."""
     trace, ckpts = tmp_path / "trace", tmp_path / "checkpoints"
-    n = 40
     steps = [{"stage": "count", "label": "c", "params": {"n": n, "trace": str(trace), "step_seconds": 0.1,
                                                          "checkpoint_trace": str(ckpts)}}]
-    cache = tmp_path / "cache"
+    return ckpts, steps, tmp_path / "cache"
+
+
+@pytest.mark.slow
+def test_a_writer_paused_past_its_lease_neither_publishes_nor_writes_scratch(tmp_path):
+    n = 40
+    ckpts, steps, cache = _counting_step(tmp_path, n)
     ttl = 3.0
     first = start(tmp_path, "first", steps, cache, lease_ttl_s=ttl)
     wait_for(lambda: len(checkpoint_writers(ckpts)) >= 3, what="the first writer's checkpoints")
@@ -61,11 +66,8 @@ def test_a_writer_paused_past_its_lease_neither_publishes_nor_writes_scratch(tmp
 
 @pytest.mark.slow
 def test_a_process_with_a_clock_60s_ahead_leaves_a_live_writers_work_alone(tmp_path):
-    trace, ckpts = tmp_path / "trace", tmp_path / "checkpoints"
     n = 25
-    steps = [{"stage": "count", "label": "c", "params": {"n": n, "trace": str(trace), "step_seconds": 0.1,
-                                                         "checkpoint_trace": str(ckpts)}}]
-    cache = tmp_path / "cache"
+    ckpts, steps, cache = _counting_step(tmp_path, n)
     writer = start(tmp_path, "writer", steps, cache)
     wait_for(lambda: len(checkpoint_writers(ckpts)) >= 2, what="the writer's checkpoints")
     store = Store(cache)
