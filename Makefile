@@ -27,8 +27,12 @@ $(STAMP): pyproject.toml Makefile
 	timeout 1200 $(BIN)/python -c "from dualnerf.kernels import grid_kernel, kernel_name; grid_kernel(); print('field kernels:', kernel_name(), flush=True)"
 	touch $(STAMP)
 
+# The tests run on TEST_WORKERS processes (pytest-xdist), each with torch on one thread; tests/conftest.py
+# keeps each module's tests on one worker and the Ray/end-to-end modules together on one.
+TEST_WORKERS ?= 2
+
 test: setup
-	$(BIN)/python -m pytest -q --durations=20
+	$(BIN)/python -m pytest -q --durations=20 -n $(TEST_WORKERS) --dist loadscope
 	$(MAKE) smoke
 
 smoke: setup
