@@ -149,19 +149,59 @@ def test_a_repeated_unit_is_a_clear_error(tmp_path):
         R.build_report(rows + [duplicate], tmp_path / "r", title_info={})
 
 
-def test_infinite_values_have_no_interval(tmp_path):
-    # The unedited scene's background PSNR is +inf (identical images): its difference cannot be stated.
+def test_infinite_values_have_no_interval_and_the_unedited_scene_is_not_compared(tmp_path):
+    # A row whose background is identical to the original has PSNR +inf: its difference cannot be stated.
+    # The unedited scene's row is shown in the table but is not a method: it gets no difference.
     original = R.ReportRow(Method.original("original"), None,
                            make_evaluate(tmp_path / "o", {"gt_psnr_background": math.inf}, (1, 2, 3)))
-    rows = [original] + [R.ReportRow(Method.idu(False, False, False, label="baseline"), seed,
-                                     make_evaluate(tmp_path / f"b{seed}", {"gt_psnr_background": 20.0 + seed},
-                                                   (1, 2, 3))) for seed in range(3)]
+    rows = [original]
+    for seed in range(3):
+        rows.append(R.ReportRow(Method.idu(False, False, False, label="baseline"), seed,
+                                make_evaluate(tmp_path / f"b{seed}", {"gt_psnr_background": 20.0 + seed}, (1, 2, 3))))
+        rows.append(R.ReportRow(Method.idu(True, False, False, label="DF"), seed,
+                                make_evaluate(tmp_path / f"d{seed}", {"gt_psnr_background": math.inf}, (1, 2, 3))))
     R.build_report(rows, tmp_path / "r", title_info={})
     doc = _by_label(json.loads((tmp_path / "r" / "table.json").read_text()))
-    paired = doc[("original", ())]["metrics"]["gt_psnr_background"]["paired"]
-    # The seedless row pairs with each of the reference's three seeds; all three are left out as non-finite.
+    paired = doc[("DF", ())]["metrics"]["gt_psnr_background"]["paired"]
     assert paired["n_pairs"] == 0 and paired["mean"] is None and len(paired["non_finite"]) == 3
-    assert "| Original Scene | 0 | n/a |" in (tmp_path / "r" / "table.md").read_text()
+    assert "paired" not in doc[("original", ())]["metrics"]["gt_psnr_background"]
+    table_md = (tmp_path / "r" / "table.md").read_text()
+    assert "| DF | 0 | n/a |" in table_md
+    differences = table_md.split("## Difference to")[1]
+    assert "Original Scene" not in differences and "| Original Scene |" in table_md
+
+
+def test_component_effects_pair_each_component_with_its_partner_per_failure_mode(tmp_path):
+    # PSNR_gt per (lock_in, seed): baseline b; DF = b + 1 everywhere; DF+SA = DF + 0.5 with lock-in on and
+    # DF + (seed noise around 0) with it off; CCI = b + 0.2 with lock-in on only (no partner row DF+CCI).
+    noise = (0.3, -0.1, -0.2)
+    rows = []
+    for lock_in in (True, False):
+        for seed in range(3):
+            base = 15.0 + seed * 0.7 + (0.4 if lock_in else 0.0)
+            values = {"baseline": base, "DF": base + 1.0,
+                      "DF+SA": base + 1.0 + (0.5 if lock_in else noise[seed])}
+            if lock_in:
+                values["CCI"] = base + 0.2
+            for label, value in values.items():
+                folder = make_evaluate(tmp_path / f"{label}_{lock_in}_{seed}", {"gt_psnr_edit": value}, (200,) * 3)
+                rows.append(R.ReportRow(Method.parse(label), seed, folder, scene="campsite", edit="snow",
+                                        params=(("lock_in", lock_in),)))
+    R.build_report(rows, tmp_path / "r", title_info={})
+    effects = json.loads((tmp_path / "r" / "report.json").read_text())["component_effects"]
+    found = {(e["component"], e["row"], e["partner"], e["params"][0][1]): e["differences"]["gt_psnr_edit"]
+             for e in effects}
+    assert set(found) == {("DF", "DF", "baseline", True), ("DF", "DF", "baseline", False),
+                          ("SA", "DF+SA", "DF", True), ("SA", "DF+SA", "DF", False),
+                          ("CCI", "CCI", "baseline", True)}           # DF+SA has no SA-free partner with CCI
+    assert found[("DF", "DF", "baseline", True)]["mean"] == pytest.approx(1.0)
+    sa_on, sa_off = found[("SA", "DF+SA", "DF", True)], found[("SA", "DF+SA", "DF", False)]
+    assert sa_on["mean"] == pytest.approx(0.5) and sa_on["ci_excludes_zero"] is True and sa_on["n_pairs"] == 3
+    assert sa_off["mean"] == pytest.approx(np.mean(noise)) and sa_off["ci_excludes_zero"] is False
+    table_md = (tmp_path / "r" / "table.md").read_text()
+    assert "## Component effects by failure-mode setting" in table_md
+    assert "| SA | DF+SA − DF | lock_in=True | 3 | +0.50 [+0.50, +0.50] excl. 0 |" in table_md
+    assert "Component effects by failure-mode setting" in (tmp_path / "r" / "index.html").read_text()
 
 
 def test_report_workflow_passes_the_reference_on(setup, tmp_path):  # noqa: F811 (the fixture)

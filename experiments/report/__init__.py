@@ -23,6 +23,7 @@ import json
 import shutil
 from pathlib import Path
 
+from experiments.report import components as CE
 from experiments.report import differences as RS
 from experiments.report import flagging as FL
 from experiments.report import joint as J
@@ -78,6 +79,10 @@ def _per_scene_tables(rows, docs, reference: str | None, out_dir: Path) -> list[
         rel = f"scenes/{slug(f'{scene}_{edit}')}"
         (out_dir / rel).mkdir(parents=True, exist_ok=True)
         doc = write_tables(columns, table, sub_docs, out_dir / rel, paired, label)
+        effects = CE.component_effects(sub_rows, sub_docs, table, columns)
+        if effects:
+            with open(out_dir / rel / "table.md", "a") as handle:
+                handle.write("\n".join(CE.markdown_section(effects)) + "\n")
         written.append((scene, edit, rel, columns, table, sub_docs, paired, label, doc))
     return written
 
@@ -96,8 +101,10 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict, refe
     table_doc = write_tables(columns, table, docs, out_dir, paired, reference_label)
     flag_entries = FL.flagging_rows(rows, table)
     gt_entries = J.ground_truth_metrics(rows, docs)
+    effects = CE.component_effects(rows, docs, table, columns)
     with open(out_dir / "table.md", "a") as handle:
-        handle.write("\n".join(FL.markdown_section(flag_entries) + J.ground_truth_markdown(gt_entries)) + "\n")
+        handle.write("\n".join(CE.markdown_section(effects) + FL.markdown_section(flag_entries)
+                               + J.ground_truth_markdown(gt_entries)) + "\n")
     scatter = J.write_joint_scatter(rows, docs, out_dir)
     per_scene = _per_scene_tables(rows, docs, reference, out_dir)
     param_plots = write_parameter_plots(table, columns, out_dir, reference_label)
@@ -125,6 +132,7 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict, refe
                       for sc, ed, rel, *_, doc in per_scene], "parameter_plots": param_plots,
         "path_strip_rows": strip_labels, "curves": curves, "convergence": convergence,
         "videos": [rel for _, rel in videos], "joint_scatter": scatter, "cci_flagging": flag_entries,
+        "component_effects": CE.entries_json(effects),
         "sees_ground_truth": gt_entries,
         "rows": [{"label": r.label, "seed": r.seed, "scene": r.scene, "edit": r.edit,
                   "params": [list(p) for p in r.params], "evaluate_dir": str(r.evaluate_dir),
@@ -133,7 +141,7 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict, refe
     first = 1 if paired else 0                                   # after the differences to the reference
     joint = [(f"<h2>Edit and background together</h2><img src='{scatter}' alt='in-mask vs outside-mask PSNR'>"
              f"<p>{J.SCATTER_CAPTION}</p>")] if scatter else []
-    joint += [FL.html_section(flag_entries), J.ground_truth_html(gt_entries)]
+    joint += [CE.html_section(effects), FL.html_section(flag_entries), J.ground_truth_html(gt_entries)]
     return write_html(out_dir, title_rows=title, columns=columns, table=table, docs=docs,
                       grid_labels=grid_labels, strip_labels=strip_labels, curves=curves, videos=videos,
                       sections=[*stats[:first], *joint, *stats[first:], *convergence_html(convergence)])

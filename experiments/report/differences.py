@@ -37,7 +37,7 @@ def paired_differences(rows, docs, table, columns, reference: str, metric_value)
         values = _unit_values(rows, docs, column, metric_value)
         for trow in table:
             key = row_key(trow)
-            if key in ref_keys:
+            if key in ref_keys or trow.method.is_original:     # the unedited scene is not a method to compare
                 continue
             if len(ref_keys) == 1:
                 ref = ref_keys[0]
