@@ -15,21 +15,13 @@ import html
 from dualnerf.metrics import METRICS
 from experiments import statistics as S
 from experiments.methods import FLAGS
-from experiments.report.differences import diff_json, format_diff
+from experiments.report.differences import diff_json, format_diff, unit_values
 from experiments.report.rows import display_label, metric_value, row_key
 
 # The joint edit-quality columns (issue 29: whole-image PSNR to the ground-truth edit first, in-mask and
 # outside-mask beside it, so editing less cannot pass as preserving more); the CLIP-space directional
 # similarity where a scene has no ground truth.
 COLUMNS = ("gt_psnr_edit", "gt_psnr_inside", "gt_psnr_background", "gt_lpips_edit", "clip_text_image_direction")
-
-
-def _units(rows, docs, column: str) -> dict[tuple, dict]:
-    out: dict[tuple, dict] = {}
-    for row, doc in zip(rows, docs):
-        out.setdefault(row_key(row), {})[(row.scene, row.edit, row.seed)] = metric_value(
-            doc["metrics"].get(column))
-    return out
 
 
 def component_effects(rows, docs, table, columns) -> list[dict]:
@@ -39,7 +31,7 @@ def component_effects(rows, docs, table, columns) -> list[dict]:
         return []
     by_flags = {(trow.method.flags, tuple(trow.params)): trow for trow in table
                 if trow.method.flags is not None}
-    values = {c: _units(rows, docs, c) for c in shown}
+    values = {c: unit_values(rows, docs, c, metric_value) for c in shown}
     entries = []
     for index, component in enumerate(FLAGS):
         for trow in table:

@@ -15,7 +15,7 @@ from experiments.report.rows import display_label, row_key
 DEFAULT_REFERENCE = "baseline"          # the single-field Instruct-NeRF2NeRF row of the shipped workflows
 
 
-def _unit_values(rows, docs, column: str, metric_value) -> dict[tuple, dict]:
+def unit_values(rows, docs, column: str, metric_value) -> dict[tuple, dict]:
     """{table-row key: {(scene, edit, seed): value}}; a repeated unit in one table row is an error."""
     out: dict[tuple, dict] = {}
     for row, doc in zip(rows, docs):
@@ -34,7 +34,7 @@ def paired_differences(rows, docs, table, columns, reference: str, metric_value)
     ref_keys = [key for key in (row_key(r) for r in table) if key[0] == reference]
     out: dict[tuple, dict] = {}
     for column in columns:
-        values = _unit_values(rows, docs, column, metric_value)
+        values = unit_values(rows, docs, column, metric_value)
         for trow in table:
             key = row_key(trow)
             if key in ref_keys or trow.method.is_original:     # the unedited scene is not a method to compare
