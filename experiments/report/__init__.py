@@ -6,7 +6,9 @@
                                        paired difference to a reference row with a bootstrap CI
     scenes/<scene>_<edit>/table.*      the same per scene and edit (only when there are several)
     joint_psnr.png                     in-mask vs outside-mask PSNR per row and seed (experiments/report/joint.py)
-                                       table.md and index.html also hold CCI's precision/recall at flagging
+                                       table.md and index.html also hold each component's effect against
+                                       the row without it per failure-mode setting (components.py),
+                                       CCI's precision/recall at flagging
                                        the emulator's failed calls (flagging.py) and the metrics that see
                                        the ground truth
     params/<axis>.png                  each metric against a parameter axis, error bars = std over seeds
