@@ -2,7 +2,7 @@
 
 Every `--flag` and `<stage>.<param>` in the strings of `raise` statements (read from the source with ast,
 f-string parts included) and in README.md and docs/*.md must be an option of some `dualnerf` parser or a
-field of that stage's Params. Flags of other tools that the docs quote (pip, pytest, git, make) are listed
+field of that stage's Params; the docs may also name the options of the benchmark scripts. Flags of other tools that the docs quote (pip, pytest, git, make) are listed
 in OTHER_TOOLS_FLAGS.
 """
 import ast
@@ -18,8 +18,8 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 OTHER_TOOLS_FLAGS = {"--no-deps", "--upgrade", "--force-reinstall", "--help", "--version", "--collect-only",
                      # ray start / ray status (docs/cluster.md and the cluster probe's messages)
                      "--head", "--address", "--port", "--num-cpus", "--num-gpus", "--block", "--temp-dir",
-                     # python -m benchmarks.simulate_cluster (docs/cluster.md)
-                     "--run", "--nodes", "--cores"}
+                     # pytest-xdist's scheduler (the Makefile's test command) and py-spy (docs/benchmarks.md)
+                     "--dist", "--native"}
 FILE_SUFFIXES = {"json", "jsonl", "py", "toml", "png", "mp4", "md", "h", "cpp", "pt", "log", "csv", "txt", "cff"}
 FLAG = re.compile(r"(?<![\w-])--[a-z][a-z0-9-]*[a-z0-9]")
 
@@ -40,6 +40,17 @@ def _parser_flags() -> set[str]:
     parser = build_parser()
     return {option for p in [parser, *_command_parsers(parser)] for action in p._actions
             for option in action.option_strings if option.startswith("--")}
+
+
+def _benchmark_flags() -> set[str]:
+    """The options of the benchmark scripts (`python -m benchmarks.<name> --flag`), read with ast."""
+    flags = set()
+    for path in sorted((ROOT / "benchmarks").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "add_argument":
+                flags |= {arg.value for arg in node.args
+                          if isinstance(arg, ast.Constant) and str(arg.value).startswith("--")}
+    return flags
 
 
 def _error_strings() -> list[tuple[str, str]]:
@@ -76,9 +87,11 @@ def test_the_checks_find_what_they_look_for():
     assert _bad([("x", "use --encoder-model or edit.encoder_models, not edit.json")], flags) == \
         ["x: --encoder-model", "x: edit.encoder_models"]
     assert len(_error_strings()) > 200
+    assert {"--iterations", "--nodes", "--cores"} <= _benchmark_flags()
 
 
 @pytest.mark.parametrize("what", ["error messages", "docs"])
 def test_only_existing_flags_and_parameters_are_named(what):
     texts = _error_strings() if what == "error messages" else _doc_strings()
-    assert _bad(texts, _parser_flags()) == []
+    flags = _parser_flags() if what == "error messages" else _parser_flags() | _benchmark_flags()
+    assert _bad(texts, flags) == []
