@@ -136,11 +136,12 @@ def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Pa
     spec = load_scene_spec(data_dir).edit("snow")
     train = dataset.indices("train")
     editor = build_editor(params, data_dir, dataset, train, spec.instruction)
-    encoder = build_encoder(params, data_dir, dataset, spec)
+    timer = PhaseTimer()
+    with timer.phase("set-up: encoder (caption images, vocabulary)"):   # once per edit and evaluate stage
+        encoder = build_encoder(params, data_dir, dataset, spec)
     config = idu_config(params)           # the stage's own settings (RGB + LPIPS patch loss, blend schedule)
     idu = IterativeDatasetUpdate(config, static, dataset, editor, spec.instruction, encoder=encoder)
 
-    timer = PhaseTimer()
     where = ["step"]                                   # "step" or "update": which loop part is running
     saved = {}
 
@@ -232,7 +233,7 @@ def _print(result) -> None:
             unit = f"{1000 * seconds / n_up:.0f} ms/upd"
         else:
             unit = f"{1000 * seconds:.0f} ms"
-        share = seconds / result["total"] if not name.startswith("checkpoint") else float("nan")
+        share = seconds / result["total"] if name.startswith(("step", "update")) else float("nan")
         print(f"  {name:48s} {seconds:8.2f} {share:6.1%} {unit:>12s}")
     per = {}
     for part in ("step", "update"):

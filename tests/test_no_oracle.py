@@ -83,3 +83,48 @@ def test_flagging_quality_closed_forms():
     # Records without a score (no encoder) or without a failure flag (a real editor) are left out.
     assert flagging_quality([{"score": None, "score_ratio": None, "editor": {"failed": True}},
                              {"score": 0.5, "score_ratio": 0.9, "editor": {"kind": "ip2p"}}])["calls"] == 0
+
+
+def _palette_pixels(materials, tags):
+    """One uint8 pixel per palette colour of the materials `tags`, and those colours as floats."""
+    colours = np.concatenate([materials[t][0] for t in tags])
+    return np.round(colours * 255).astype(np.uint8)[None, None], colours
+
+
+def test_caption_images_read_each_palette_colour_as_the_specification_says():
+    """Closed forms: a pixel showing a recoloured material's palette colour becomes the new palette's
+    colour; under "snow" a solid material's colour mixes half-way toward the snow colour (shading 1);
+    and a pixel's caption depends only on its colour (a stack equals its views captioned one by one)."""
+    from dualnerf.scenes.captions import SNOW_CAPTION_COVER, caption_images, scene_materials
+    from dualnerf.scenes.library import BUILDERS
+    from dualnerf.scenes.materials import SNOW
+
+    materials = scene_materials("campsite")
+    edits = {e.id: e for e in BUILDERS["campsite"][1]}
+    new_tent = np.asarray(edits["blue_tent"].variant.recolour["tent"], np.float32)
+    pixels, own = _palette_pixels(materials, ["tent"])
+    shown = pixels[0, 0] / 255.0                      # the palette colour as an 8-bit pixel shows it
+    blue = caption_images("campsite", "blue_tent", pixels)[0, 0] / 255.0
+    np.testing.assert_allclose(blue, np.clip(shown * new_tent / own, 0, 1), atol=1 / 255)
+    np.testing.assert_allclose(blue, np.clip(new_tent, 0, 1), atol=0.05)
+
+    # Colours whose chromaticity another material's palette nearly shares are read as either: skip them.
+    every = np.concatenate([palette for palette, _ in materials.values()])
+    chroma = every / every.sum(axis=1, keepdims=True)
+    apart = np.sort(np.linalg.norm(chroma[:, None] - chroma[None], axis=-1), axis=1)[:, 1] > 0.03
+    solid = np.concatenate([np.full(3, not emissive) for _, emissive in materials.values()])
+    own = every[apart & solid]
+    assert len(own) >= 5
+    pixels = np.round(own * 255).astype(np.uint8)[None, None]
+    shown = pixels[0, 0] / 255.0
+    luminance = np.array([0.299, 0.587, 0.114])
+    shading = np.clip(shown @ luminance / (own @ luminance), 0.2, 1.5)[:, None]
+    snowy = caption_images("campsite", "snow", pixels)[0, 0] / 255.0
+    expected = (1 - SNOW_CAPTION_COVER) * shown + SNOW_CAPTION_COVER * np.asarray(SNOW[0]) * shading
+    np.testing.assert_allclose(snowy, np.clip(expected, 0, 1), atol=1 / 255)
+
+    rng = np.random.default_rng(0)
+    views = rng.integers(0, 256, (3, 16, 24, 3), dtype=np.uint8)
+    views[1, :4] = views[0, :4]                       # shared colours across views
+    one_by_one = np.concatenate([caption_images("campsite", "snow", v[None]) for v in views])
+    np.testing.assert_array_equal(caption_images("campsite", "snow", views), one_by_one)
