@@ -34,7 +34,9 @@ class PreprocessParams:
 
 class PreprocessStage(NumpyNumerics, Stage):
     name = "preprocess"
-    version = "2"           # 2: SfM with more SIFT features, 2 px filter, pinhole unless distortion pays
+    # 2: SfM with more SIFT features, 2 px filter, pinhole unless distortion pays; 3: the radial trial's
+    # bundle adjustment on one thread (its report's numbers were thread-scheduling dependent)
+    version = "3"
     Params = PreprocessParams
     upstream = ("scene",)
     external = ("source",)

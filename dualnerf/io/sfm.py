@@ -152,7 +152,7 @@ def run_sfm(source: Path, scratch: Path, config) -> Reconstruction:
     best = max(models.values(), key=lambda m: m.num_reg_images(), default=None)
     model_choice = None
     if best is not None and config.camera_model == AUTO_MODEL:
-        best, model_choice = _radial_if_supported(pycolmap, best)
+        best, model_choice = _radial_if_supported(pycolmap, best, threads)
     registered = best.num_reg_images() if best is not None else 0
     recon = reconstruction_from_pycolmap(best, work_images, total=len(names)) if best is not None else None
     stem_to_name = {Path(n).stem: n for n in names}
@@ -185,7 +185,7 @@ def run_sfm(source: Path, scratch: Path, config) -> Reconstruction:
     return recon
 
 
-def _radial_if_supported(pycolmap, model):
+def _radial_if_supported(pycolmap, model, threads: int):
     """(model, why): the pinhole `model`, or a copy refined with a radial term (SIMPLE_RADIAL) when that
     lowers the mean reprojection error by at least DISTORTION_MIN_GAIN: a simpler model that explains
     the matches equally well is kept, so no distortion is estimated or undone that the data lacks."""
@@ -199,6 +199,9 @@ def _radial_if_supported(pycolmap, model):
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_extra_params = True
     options.print_summary = False
+    # Ceres defaults to every core (num_threads -1); its multi-threaded sums moved the refined k1 and the
+    # errors in their last bits between two runs of one key (campsite), and could flip the model choice.
+    options.ceres.solver_options.num_threads = threads
     pycolmap.bundle_adjustment(radial, options)
     radial_error = radial.compute_mean_reprojection_error()
     gain = (pinhole_error - radial_error) / pinhole_error if pinhole_error > 0 else 0.0
