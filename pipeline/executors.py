@@ -2,8 +2,9 @@
 
     SerialExecutor()                 in this process, one at a time (tests, debugging)
     ProcessPoolExecutor(jobs)        spawn-context worker processes, up to `jobs` at once while
-                                     their stages' CPU hints fit the cores; each job
-                                     gets threads = its stage's hint (at most the cores)
+                                     their threads fit the cores; each job gets its stage's
+                                     CPU hint or its share of the cores (cores // jobs),
+                                     whichever is larger (`jobs=1`: every step gets them all)
     RayExecutor(address=None)        one ray task per step with the stage's resource hints; joins
                                      `address` or starts a local instance; ray imported lazily
 All of them read and write the shared cache folder; only Jobs (keys, params, paths) cross over.
@@ -144,6 +145,11 @@ class ProcessPoolExecutor(Executor):
             initializer=_worker_init, initargs=(cpu_count(), os.getpid()))
         self._pool = self._new_pool()
         self._futures: set = set()
+
+    def threads_for(self, resources: Resources) -> int:
+        """The stage's hint, or this job's share of the cores when that is larger: with fewer jobs than
+        cores a step uses what would otherwise sit idle. Safe because results do not depend on threads."""
+        return max(1, min(max(resources.cpus, self.threads), self.cores))
 
     def submit(self, job: Job, resources: Resources):
         from concurrent.futures.process import BrokenProcessPool

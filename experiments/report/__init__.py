@@ -137,8 +137,8 @@ def build_report(rows: list[ReportRow], out_dir: Path, *, title_info: dict, refe
         "component_effects": CE.entries_json(effects),
         "sees_ground_truth": gt_entries,
         "rows": [{"label": r.label, "seed": r.seed, "scene": r.scene, "edit": r.edit,
-                  "params": [list(p) for p in r.params], "evaluate_dir": str(r.evaluate_dir),
-                  "edit_dir": None if r.edit_dir is None else str(r.edit_dir)} for r in rows]}, indent=1))
+                  "params": [list(p) for p in r.params], "evaluate_key": Path(r.evaluate_dir).name,
+                  "edit_key": None if r.edit_dir is None else Path(r.edit_dir).name} for r in rows]}, indent=1))
     stats = statistics_html(columns, table, docs, paired, reference_label, per_scene, param_plots)
     first = 1 if paired else 0                                   # after the differences to the reference
     joint = [(f"<h2>Edit and background together</h2><img src='{scatter}' alt='in-mask vs outside-mask PSNR'>"
