@@ -144,6 +144,24 @@ def test_a_render_session_reads_interleaved_tables_with_the_same_bits():
     assert torch.equal(table[4 * flat:4 * flat + 4], expected)
 
 
+def test_kept_interleaved_tables_follow_changes_of_either_field():
+    # Sessions keep the interleaved tables and rewrite f_D's half each time (f_S's when it changed): after
+    # a training-like change of f_D, and after an in-place change of the frozen f_S (a checkpoint load),
+    # a session still equals the separate tables' result, and reuses its memory.
+    model, (x, d) = DualField(field(CONFIGS[0], 24), field(CONFIGS[0], 25)), samples(900, seed=12)
+    with torch.no_grad():
+        with model.render_session():
+            first = model._interleaved
+        for changed in (model.dynamic_field, model.static_field):
+            for table in (*changed.grid_tables()[0], *changed.grid_tables()[1]):
+                table.add_(0.25 * torch.randn(table.shape, generator=torch.Generator().manual_seed(13)))
+            separate = model.query(x, d, blend=(0.4, 0.5))
+            with model.render_session():
+                assert model._interleaved is first                  # the same buffers, rewritten
+                interleaved = model.query(x, d, blend=(0.4, 0.5))
+            assert all(torch.equal(a, b) for a, b in zip(separate, interleaved))
+
+
 def test_per_ray_direction_features_with_an_index_equal_the_gathered_rows():
     # A render passes one SH row per ray and each sample's ray instead of an (M, S) gathered copy.
     model, (x, d) = DualField(field(CONFIGS[0], 22), field(CONFIGS[0], 23)), samples(1200, seed=10)

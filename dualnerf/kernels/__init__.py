@@ -252,18 +252,24 @@ def _layer_tensors(layers) -> list[torch.Tensor]:
     return _forward_layout(_parameters(layers))
 
 
-def interleave_pair(first_tables, second_tables) -> list[torch.Tensor] | None:
+def interleave_pair(first_tables, second_tables, into: list[torch.Tensor] | None = None,
+                    write_first: bool = True) -> list[torch.Tensor] | None:
     """Two fields' (dense grids, planes) as one (cells, 4) table each (first's 2 features, then second's),
     for field_inference(..., interleaved=): both fields' corner from one cache line. None where the kernel
-    cannot take them (not built, not float32 CPU tables with 2 features each)."""
+    cannot take them (not built, not float32 CPU tables with 2 features each).
+    `into`: an earlier result for tables of the same sizes, rewritten in place and returned (the second
+    field's half always, the first's only with write_first: a frozen first field's half stays valid)."""
     module = grid_kernel()
     tables = [*first_tables[0], *first_tables[1], *second_tables[0], *second_tables[1]]
     if module is None or not all(t.device.type == "cpu" and t.dtype == torch.float32 and t.shape[1] == 2
                                  for t in tables):
         return None
+    args = (list(first_tables[0]), list(first_tables[1]), list(second_tables[0]), list(second_tables[1]))
     with torch.no_grad():
-        return module.interleave_pair(list(first_tables[0]), list(first_tables[1]), list(second_tables[0]),
-                                      list(second_tables[1]))
+        if into is None:
+            return module.interleave_pair(*args)
+        module.interleave_pair_into(into, *args, bool(write_first))
+        return into
 
 
 def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=None,

@@ -377,33 +377,46 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
 // cell. field_inference then reads both fields' corner from one cache line instead of two (the look-ups
 // of a render are bound by the cache misses); the values and the arithmetic are the same, so the
 // results are too, bit for bit. A render builds them once per image (~100 MB at the default sizes).
-std::vector<torch::Tensor> interleave_pair(std::vector<torch::Tensor> dense_a, std::vector<torch::Tensor> planes_a,
-                                           std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b) {
+// interleave_pair into existing (cells, 4) tables `out` (from an earlier interleave_pair of the same table
+// sizes): the second field's features always, the first field's only with write_first. A render session
+// of a dual field keeps the frozen f_S's half and rewrites f_D's: half the copying, and no fresh pages.
+void interleave_pair_into(std::vector<torch::Tensor> out, std::vector<torch::Tensor> dense_a,
+                          std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> dense_b,
+                          std::vector<torch::Tensor> planes_b, bool write_first) {
   const auto tables = describe(dense_a, planes_a);
   const auto tables_b = describe(dense_b, planes_b);
-  TORCH_CHECK(tables.size() == tables_b.size(), "the two fields must have the same tables");
+  TORCH_CHECK(tables.size() == tables_b.size() && out.size() == tables.size(),
+              "interleave_pair: the two fields must have the same tables, and one output per table");
   for (size_t k = 0; k < tables.size(); ++k)
-    TORCH_CHECK(tables[k].res == tables_b[k].res && tables[k].channels == 2 && tables_b[k].channels == 2,
-                "interleave_pair: the two fields must have the same tables, with 2 features each");
+    TORCH_CHECK(tables[k].res == tables_b[k].res && tables[k].channels == 2 && tables_b[k].channels == 2 &&
+                    out[k].scalar_type() == torch::kFloat32 && out[k].is_contiguous() &&
+                    out[k].numel() == 4 * table_cells(tables[k]),
+                "interleave_pair: the two fields must have the same tables, with 2 features each, and each "
+                "output 4 floats per cell");
   std::vector<torch::Tensor> keep;
   const auto data_a = table_data(dense_a, planes_a, keep);
   const auto data_b = table_data(dense_b, planes_b, keep);
-  std::vector<torch::Tensor> out;
   for (size_t k = 0; k < tables.size(); ++k) {
-    const int64_t cells = table_cells(tables[k]);
-    auto pair = torch::empty({4 * cells}, torch::kFloat32);
-    float* o = pair.data_ptr<float>();
+    float* o = out[k].data_ptr<float>();
     const float *a = data_a[k], *b = data_b[k];
-    parallel_for(0, cells, 4096, [&](int64_t begin, int64_t end) {
+    parallel_for(0, table_cells(tables[k]), 4096, [&](int64_t begin, int64_t end) {
       for (int64_t i = begin; i < end; ++i) {
-        o[4 * i] = a[2 * i];
-        o[4 * i + 1] = a[2 * i + 1];
+        if (write_first) {
+          o[4 * i] = a[2 * i];
+          o[4 * i + 1] = a[2 * i + 1];
+        }
         o[4 * i + 2] = b[2 * i];
         o[4 * i + 3] = b[2 * i + 1];
       }
     });
-    out.push_back(pair);
   }
+}
+
+std::vector<torch::Tensor> interleave_pair(std::vector<torch::Tensor> dense_a, std::vector<torch::Tensor> planes_a,
+                                           std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b) {
+  std::vector<torch::Tensor> out;
+  for (const auto& t : describe(dense_a, planes_a)) out.push_back(torch::empty({4 * table_cells(t)}, torch::kFloat32));
+  interleave_pair_into(out, dense_a, planes_a, dense_b, planes_b, true);
   return out;
 }
 

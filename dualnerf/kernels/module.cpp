@@ -22,6 +22,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, module) {
   module.def("encode_forward", &encode_forward, "fused dense-grid + plane feature look-ups");
   module.def("encode_forward_pair", &encode_forward_pair, "encode_forward for two fields' tables at once");
   module.def("interleave_pair", &interleave_pair, "two fields' tables as one (cells, 4) table each");
+  module.def("interleave_pair_into", &interleave_pair_into, "interleave_pair into existing tables");
   module.def("encode_backward", &encode_backward, "gradients of encode_forward w.r.t. the tables");
   module.def("field_inference", &field_inference, "look-ups and MLPs of one field or the fused dual field");
   module.def("ray_samples", &ray_samples, "proposal intervals and their occupancy per ray (the render sampler)");
