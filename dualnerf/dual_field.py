@@ -176,7 +176,12 @@ class DualField(nn.Module):
         if blend is None:
             with torch.no_grad():
                 return self.static_field.density_hidden(x)
-        w_density, _ = _effective_blend(blend, retreat)
+        w_density, w_color = _effective_blend(blend, retreat)
+        if self.static_field.can_infer(x) and self.dynamic_field.can_infer(x):    # the occupancy refresh
+            return kernels.field_inference(x, self.static_field.empty_direction_features(x),
+                                           self.static_field.grid_tables(), self.static_field.mlp_layers(),
+                                           second=(self.dynamic_field.grid_tables(), self.dynamic_field.mlp_layers()),
+                                           blend=(w_density, w_color), density_only=True)[0]
         features_s, features_d = self._both_features(x)
         with torch.no_grad():
             h_sigma_s = self.static_field.density_head(features_s)

@@ -268,8 +268,16 @@ class RadianceField(nn.Module):
         return h_sigma, h_color
 
     def density_hidden(self, x: torch.Tensor) -> torch.Tensor:
-        """h_sigma only (no colour branch): used by the occupancy-grid update."""
+        """h_sigma only (no colour branch): used by the occupancy-grid update. Without autograd on the
+        kernels, look-ups and density MLP in one fused pass (kernels.field_inference, density_only)."""
+        if self.can_infer(x):
+            return kernels.field_inference(x, self.empty_direction_features(x), self.grid_tables(),
+                                           self.mlp_layers(), density_only=True)[0]
         return self.density_head(self.features(x))
+
+    def empty_direction_features(self, x: torch.Tensor) -> torch.Tensor:
+        """A (0, S) tensor: the SH width for density-only inference, which reads no direction."""
+        return x.new_zeros((0, self.config.direction_degree ** 2))
 
     def density_head(self, features: torch.Tensor) -> torch.Tensor:
         """h_sigma from encoded features (blocked without autograd, as in heads)."""

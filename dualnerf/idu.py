@@ -82,6 +82,10 @@ class IDUConfig:
     # ~1e-3 mean colour difference, below the 8-bit step the edited image is stored with; the editor
     # re-noises the render anyway). Training, probes and evaluation renders stay fp32.
     update_precision: str = "fp32"
+    # Field evaluations per ray in training and in the view updates' renders; 0: the field's own
+    # (FieldConfig.samples_per_ray and render_samples_per_ray). Convergence probes and the saved model's
+    # renders (evaluation) keep the field's render_samples_per_ray.
+    samples_per_ray: int = 0
 
     def __post_init__(self) -> None:
         for name in ("iterations", "edit_rate", "edit_count", "rays_per_batch"):
@@ -89,6 +93,9 @@ class IDUConfig:
                 raise IDUConfigError(f"edit parameter '{name}' must be >= 1, got {getattr(self, name)}.")
         if not self.learning_rate > 0:
             raise IDUConfigError(f"edit parameter 'lr' must be > 0, got {self.learning_rate}.")
+        if self.samples_per_ray != 0 and self.samples_per_ray < 2:
+            raise IDUConfigError(f"edit parameter 'samples_per_ray' must be 0 (the fitted field's) or >= 2, got "
+                                 f"{self.samples_per_ray}.")
         if self.update_precision not in ("fp32", "bf16"):
             raise IDUConfigError(f"edit parameter 'update_precision' must be 'fp32' or 'bf16', got "
                                  f"{self.update_precision!r}.")
@@ -140,7 +147,8 @@ class IterativeDatasetUpdate:
             lr = lr / config.blend.w_max_color
         self.train_config = TrainConfig(rays_per_batch=config.rays_per_batch, learning_rate=lr,
                                         lpips_weight=config.lpips_weight, lpips_net=config.lpips_net,
-                                        patch_size=config.patch_size, patch_share=config.patch_share)
+                                        patch_size=config.patch_size, patch_share=config.patch_share,
+                                        samples_per_ray=config.samples_per_ray)
         self.generator = torch.Generator().manual_seed(config.seed)
         self.trainer = RayTrainer(self.model, torch.from_numpy(self.images).to(self.device).float() / 255.0,
                                   Cameras.from_dataset(dataset), self.train_config, self.generator,
@@ -191,7 +199,8 @@ class IterativeDatasetUpdate:
             blend = (1.0, 1.0)
         image = render_view(model, ds.c2w[view], ds.intrinsics[view], ds.width, ds.height, float(ds.near[view]),
                             float(ds.far[view]), blend=blend, retreat=float(retreat) if blend is not None else 1.0,
-                            mlp_precision=self.config.update_precision)
+                            mlp_precision=self.config.update_precision,
+                            samples_per_ray=self.config.samples_per_ray or None)
         return image.numpy()
 
     def dataset_update(self, iteration: int) -> None:

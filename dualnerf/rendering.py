@@ -13,7 +13,8 @@ API:
         -> dict(color (R,3), opacity (R,), evaluated: int[, distortion (R,)])
     distortion(weights (R,S), t (R,S), delta (R,S), length (R,)) -> (R,)   mip-NeRF 360 distortion loss
     render_view(model, c2w, intrinsics, width, height, near, far, *, blend=None, retreat=1.0,
-                chunk=8192, termination_eps=0.0, mlp_precision="fp32") -> (H,W,3) float tensor in [0,1] (CPU)
+                chunk=8192, termination_eps=0.0, mlp_precision="fp32", samples_per_ray=None)
+        -> (H,W,3) float tensor in [0,1] (CPU)
 
 `model` is a RadianceField (static or single-field baseline) or a DualField; blend=None renders the
 static/single field, blend=(w_density, w_color) the fused dual field (see dualnerf.dual_field).
@@ -263,13 +264,15 @@ def _render_packed(model, origins, dirs, t, delta, mask, ray_features, blend, re
 
 @torch.no_grad()
 def render_view(model, c2w, intrinsics, width: int, height: int, near: float, far: float, *,
-                blend=None, retreat: float = 1.0, chunk: int = 8192,
-                termination_eps: float = 0.0, mlp_precision: str = "fp32") -> torch.Tensor:
+                blend=None, retreat: float = 1.0, chunk: int = 8192, termination_eps: float = 0.0,
+                mlp_precision: str = "fp32", samples_per_ray: int | None = None) -> torch.Tensor:
     """Full image in chunks of `chunk` rays (bounded memory); deterministic (bin-centre samples), with
     FieldConfig.render_samples_per_ray field evaluations per ray; termination_eps > 0 stops rays whose
     transmittance fell below it (each colour within termination_eps of the default, exact render).
     mlp_precision "bf16": the fused inference kernel's MLPs in bfloat16 (dualnerf.kernels.mlp_precision;
-    ~1e-3 mean colour difference on campsite, for the IDU's view updates only)."""
+    ~1e-3 mean colour difference on campsite, for the IDU's view updates only). samples_per_ray: field
+    evaluations per ray instead of FieldConfig.render_samples_per_ray (the IDU's view updates use its
+    training sample count)."""
     from dualnerf.cameras import view_rays
 
     device = next(model.parameters()).device
@@ -280,7 +283,8 @@ def render_view(model, c2w, intrinsics, width: int, height: int, near: float, fa
     with model.render_session(), kernels.mlp_precision(mlp_precision):
         for s in range(0, origins.shape[0], chunk):
             result = render_rays(model, origins[s:s + chunk], dirs[s:s + chunk], float(near), float(far),
-                                 blend=blend, retreat=retreat, samples_per_ray=model.config.render_samples_per_ray,
+                                 blend=blend, retreat=retreat,
+                                 samples_per_ray=samples_per_ray or model.config.render_samples_per_ray,
                                  termination_eps=termination_eps)
             out[s:s + chunk] = result["color"].float().cpu()
     return out.reshape(int(height), int(width), 3).clamp(0.0, 1.0)

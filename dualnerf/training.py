@@ -59,6 +59,7 @@ class TrainConfig:
     lpips_net: str = "alex"         # LPIPS backbone: "alex" or "vgg"
     patch_size: int = 32            # patch side in pixels (IN2N: 32)
     patch_share: float = 0.5        # share of each batch's rays drawn as patches (at least one patch)
+    samples_per_ray: int = 0        # field evaluations per training ray; 0: the model's FieldConfig value
 
 
 class TrainingInputError(ValueError):
@@ -178,7 +179,8 @@ class RayTrainer:
         origins, dirs = pixel_rays(cams.c2w[views_d], cams.intrinsics[views_d], u_d, v_d)
         with self.table_gradients.collect() if self.table_gradients is not None else contextlib.nullcontext():
             result = render_rays(self.model, origins, dirs, cams.near[views_d], cams.far[views_d],
-                                 blend=blend, generator=self.generator, with_distortion=cfg.distortion_weight > 0)
+                                 blend=blend, generator=self.generator, with_distortion=cfg.distortion_weight > 0,
+                                 samples_per_ray=cfg.samples_per_ray or None)
         ray_weights = None
         if view_weights is not None:
             ray_weights = normalised_view_weights(view_weights, self.train_indices.tolist()).to(self.device)[views_d]

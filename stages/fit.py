@@ -96,8 +96,9 @@ class FitStage(TorchNumerics, Stage):
     # render sample count; 4: Adam skips feature-table entries without gradient (dualnerf.optim); 5: renders
     # composite in the packed kernel path (dualnerf.rendering._render_packed: float32 rounding differs);
     # 6: the MLPs train on the kernels (thread-count independent sums), renders' exp and sums as the
-    # portable path's, torch on one thread
-    version = "6"
+    # portable path's, torch on one thread; 7: the occupancy refresh's density MLP in the fused inference
+    # kernel (kernels.field_inference, density_only) instead of torch's matmul: float32 rounding differs
+    version = "7"
     Params = FitParams
     upstream = ("dataset",)
     resources = Resources(cpus=2, gpus=0, memory_gb=3)

@@ -230,3 +230,36 @@ def test_snow_edit_moves_the_model_toward_the_ground_truth(small):
     before, after = psnr_to_gt(static, None), psnr_to_gt(model, model.render_blend)
     print(f"PSNR to the ground-truth snow edit: f_S {before:.2f} dB -> DualNeRF {after:.2f} dB")
     assert after > before + 4.0
+
+
+def test_samples_per_ray_sets_training_and_view_update_samples(small, monkeypatch):
+    # The CPU preset trains and renders view updates at fewer samples than the fitted field's own: every
+    # training ray and every rendered ray evaluates at most that many; 0 keeps the field's counts.
+    from dualnerf import rendering
+
+    _, _, dataset, static = small
+    counts = []
+    original = rendering.render_rays
+
+    def counting(model, origins, *args, samples_per_ray=None, **kwargs):
+        out = original(model, origins, *args, samples_per_ray=samples_per_ray, **kwargs)
+        counts.append((kwargs.get("generator") is not None, origins.shape[0], out["evaluated"], samples_per_ray))
+        return out
+
+    monkeypatch.setattr(rendering, "render_rays", counting)
+    monkeypatch.setattr("dualnerf.training.render_rays", counting)
+    for setting, train_samples, render_samples in ((6, 6, 6), (0, static.config.samples_per_ray,
+                                                               static.config.render_samples_per_ray)):
+        counts.clear()
+        idu = make_idu(small, dual_field=True, annealing=False, consistency=False, iterations=3, edit_rate=5,
+                       samples_per_ray=setting)
+        idu.run()
+        training = [c for c in counts if c[0]]
+        renders = [c for c in counts if not c[0]]
+        assert len(training) == 3 and renders                       # 3 steps, 1 view update
+        assert all(c[3] == (setting or None) for c in training)
+        assert all(evaluated <= rays * train_samples for _, rays, evaluated, _ in training)
+        assert all(evaluated <= rays * render_samples for _, rays, evaluated, _ in renders)
+        assert sum(e for _, _, e, _ in renders) > sum(r for _, r, _, _ in renders) * min(render_samples, 6) / 2
+    with pytest.raises(Exception, match="samples_per_ray"):
+        IDUConfig(samples_per_ray=1)

@@ -262,3 +262,26 @@ def test_a_bf16_render_stays_within_a_fraction_of_an_8_bit_step():
     diff = (fp32 - bf16).abs()
     assert fp32.std() > 0.05                          # the field is in view, not just background
     assert 0.0 < diff.mean() < 1.0 / 255.0
+
+
+@pytest.mark.parametrize("config", CONFIGS)
+def test_density_only_inference_is_the_full_passes_h_sigma(config):
+    # The occupancy refresh needs h_sigma alone: the colour MLPs are skipped, h_sigma is the same bits as
+    # the full pass's, and close to the torch path (features + density MLP), for f_S and the dual field.
+    static, dynamic = field(config, 30), field(config, 31)
+    model, (x, d) = DualField(static, dynamic), samples(700, seed=14)
+    with torch.no_grad():
+        sh = static.direction_features(d)
+        empty = static.empty_direction_features(x)
+        for second, blend in ((None, (0.0, 0.0)), ((dynamic.grid_tables(), dynamic.mlp_layers()), (0.3, 0.8))):
+            full = kernels.field_inference(x, sh, static.grid_tables(), static.mlp_layers(), second=second,
+                                           blend=blend)
+            sigma, color = kernels.field_inference(x, empty, static.grid_tables(), static.mlp_layers(),
+                                                   second=second, blend=blend, density_only=True)
+            assert torch.equal(sigma, full[0]) and color.shape == (0, 3)
+        torch.testing.assert_close(static.density_hidden(x), static.density_head(static.reference_features(x)),
+                                   atol=2e-5, rtol=1e-5)
+        expected = ((1 - 0.3) * static.density_head(static.reference_features(x))
+                    + 0.3 * dynamic.density_head(dynamic.reference_features(x)))
+        torch.testing.assert_close(model.query_density(x, blend=(0.6, 0.9), retreat=0.5), expected,
+                                   atol=2e-5, rtol=1e-5)

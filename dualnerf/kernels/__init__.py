@@ -274,7 +274,8 @@ def interleave_pair(first_tables, second_tables, into: list[torch.Tensor] | None
 
 def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=None,
                     blend: tuple[float, float] = (0.0, 0.0), interleaved: list[torch.Tensor] | None = None,
-                    sh_index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                    sh_index: torch.Tensor | None = None,
+                    density_only: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """(h_sigma, h_color) of one field at points x with per-point direction SH features `sh`, computed block
     by block in cache (look-ups, both MLPs) instead of through torch's (M, width) intermediates. `tables` =
     (dense grids, planes) and `layers` = (density hidden, density out, colour hidden, colour out) nn.Linear.
@@ -283,7 +284,9 @@ def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=No
     sample's result does not depend on the others, the block size or the thread count. `interleaved`:
     interleave_pair(tables, second's tables), read instead of the two fields' tables (the same bits).
     `sh_index` (M,) int64: sample i's SH features are sh[sh_index[i]] (sh holds one row per ray), the same
-    values as passing sh[sh_index] without writing that (M, S) copy."""
+    values as passing sh[sh_index] without writing that (M, S) copy. `density_only`: h_sigma alone, the
+    colour MLPs skipped (the occupancy grid's refresh); h_color is then (0, 3), and `sh` only gives the
+    number of SH features (e.g. an empty (0, S) tensor). h_sigma is the same bits either way."""
     _refuse_autograd("field_inference", x, sh, *tables[0], *tables[1], *_parameters(layers),
                      *([] if second is None else [*second[0][0], *second[0][1], *_parameters(second[1])]))
     dense, planes = tables
@@ -293,7 +296,7 @@ def field_inference(x: torch.Tensor, sh: torch.Tensor, tables, layers, second=No
     return tuple(grid_kernel().field_inference(
         x, sh, list(dense), list(planes), _layer_tensors(layers), list(second_dense), list(second_planes),
         second_layers, float(blend[0]), float(blend[1]), [] if second is None or interleaved is None else interleaved,
-        sh_index, vector_path(), current_mlp_precision() == "bf16", _amx_path()))
+        sh_index, vector_path(), current_mlp_precision() == "bf16", _amx_path(), bool(density_only)))
 
 
 def _forward_layout(params) -> list[torch.Tensor]:

@@ -238,13 +238,19 @@ void apply_layer(const FieldMlps& m, int i, const float* in, int64_t ld_in, int6
 }
 
 // (h_sigma, h_color) of `rows` samples from their features and direction SH features: row r's are
-// sh + r * n_sh, or sh + sh_index[r] * n_sh with an index (a render's per-ray features).
+// sh + r * n_sh, or sh + sh_index[r] * n_sh with an index (a render's per-ray features). density_only:
+// h_sigma alone (the occupancy grid's refresh); sh and h_color are not read or written.
 void field_mlps(const FieldMlps& m, const float* features, int64_t ld_features, const float* sh,
-                const int64_t* sh_index, int64_t rows, Scratch& s, float* h_sigma, float* h_color, bool vector_path) {
+                const int64_t* sh_index, int64_t rows, Scratch& s, float* h_sigma, float* h_color, bool vector_path,
+                bool density_only) {
   const Layer* l = m.layer;
   const int64_t ld_h = std::max(l[0].out_pad, l[2].out_pad), ld_d = l[1].out_pad, ld_c = l[2].in;
   apply_layer(m, 0, features, ld_features, rows, s.hidden.data(), ld_h, true, s, vector_path);
   apply_layer(m, 1, s.hidden.data(), ld_h, rows, s.density_out.data(), ld_d, false, s, vector_path);
+  if (density_only) {
+    for (int64_t r = 0; r < rows; ++r) h_sigma[r] = s.density_out[r * ld_d];
+    return;
+  }
   const int geo = l[1].out - 1;
   for (int64_t r = 0; r < rows; ++r) {
     float* c = s.color_in.data() + r * ld_c;
@@ -263,16 +269,18 @@ void field_mlps(const FieldMlps& m, const float* features, int64_t ld_features, 
 }  // namespace
 
 // One field (dense_b empty) or the dual field: h = (1 - w) h_S + w h_D per output (eqs. 4-5), with
-// a = f_S and b = f_D. Returns (h_sigma (M,), h_color (M, 3)).
+// a = f_S and b = f_D. Returns (h_sigma (M,), h_color (M, 3)); density_only: (h_sigma, an empty (0, 3)
+// tensor) without running the colour MLPs (sh then gives only its width: the colour MLP's SH inputs).
 std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, std::vector<torch::Tensor> dense_a,
                                            std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> mlp_a,
                                            std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b,
                                            std::vector<torch::Tensor> mlp_b, double w_density, double w_color,
                                            std::vector<torch::Tensor> interleaved, std::optional<torch::Tensor> sh_index,
-                                           bool vector_path, bool bf16, bool amx) {
+                                           bool vector_path, bool bf16, bool amx, bool density_only) {
   TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32, "x must be (M, 3) float32");
-  const bool indexed = sh_index.has_value();
-  TORCH_CHECK(sh.dim() == 2 && (indexed || sh.size(0) == x.size(0)) && sh.scalar_type() == torch::kFloat32,
+  const bool indexed = sh_index.has_value() && !density_only;
+  TORCH_CHECK(sh.dim() == 2 && (indexed || density_only || sh.size(0) == x.size(0)) &&
+                  sh.scalar_type() == torch::kFloat32,
               "sh must be (M, S) float32, or (R, S) with sh_index");
   x = x.contiguous();
   sh = sh.contiguous();
@@ -321,7 +329,7 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
       TORCH_CHECK(mlps_b.layer[i].in == mlps_a.layer[i].in && mlps_b.layer[i].out_pad == mlps_a.layer[i].out_pad,
                   "the two fields must have the same MLP shapes");
   auto h_sigma = torch::empty({m}, x.options());
-  auto h_color = torch::empty({m, 3}, x.options());
+  auto h_color = torch::empty({density_only ? 0 : m, 3}, x.options());
   const float *xp = x.data_ptr<float>(), *shp = sh.data_ptr<float>();
   float *sp = h_sigma.data_ptr<float>(), *cp = h_color.data_ptr<float>();
   // The coefficients rounded to float as torch rounds a Python scalar: (1 - w) in double first.
@@ -355,15 +363,17 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
       lookup_range(tables, data_a, dual ? &data_b : nullptr, xp, feat_a.data(), feat_b.data(), n_features, begin,
                    end, begin, vector_path);
       float* sig = sp + begin;
-      float* col = cp + 3 * begin;
-      const float* sh_rows = index ? shp : shp + begin * n_sh;
+      float* col = density_only ? nullptr : cp + 3 * begin;
+      const float* sh_rows = index || density_only ? shp : shp + begin * n_sh;
       const int64_t* sh_index_rows = index ? index + begin : nullptr;
-      field_mlps(mlps_a, feat_a.data(), n_features, sh_rows, sh_index_rows, rows, scratch, sig, col, vec);
+      field_mlps(mlps_a, feat_a.data(), n_features, sh_rows, sh_index_rows, rows, scratch, sig, col, vec,
+                 density_only);
       if (!dual) continue;
       field_mlps(mlps_b, feat_b.data(), n_features, sh_rows, sh_index_rows, rows, scratch, sigma_b.data(),
-                 color_b.data(), vec);
+                 color_b.data(), vec, density_only);
       // Eqs. 4-5 in the order of dualnerf.dual_field._fuse: (1 - w) * h_S + w * h_D.
       for (int64_t r = 0; r < rows; ++r) sig[r] = keep_d * sig[r] + wd * sigma_b[r];
+      if (density_only) continue;
       for (int64_t r = 0; r < 3 * rows; ++r) col[r] = keep_c * col[r] + wc * color_b[r];
     }
 #ifdef DUALNERF_HAVE_AVX512
@@ -441,7 +451,7 @@ std::vector<torch::Tensor> mlp_inference(torch::Tensor features, torch::Tensor s
     for (int64_t blk = block_begin; blk < block_end; ++blk) {
       const int64_t begin = blk * kInferBlock, rows = std::min(m, begin + kInferBlock) - begin;
       field_mlps(mlps, fp + begin * n_features, n_features, shp + begin * n_sh, nullptr, rows, scratch, sp + begin,
-                 cp + 3 * begin, vec);
+                 cp + 3 * begin, vec, false);
     }
   });
   return {h_sigma, h_color};

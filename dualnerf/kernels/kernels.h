@@ -255,7 +255,7 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
                                            std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b,
                                            std::vector<torch::Tensor> mlp_b, double w_density, double w_color,
                                            std::vector<torch::Tensor> interleaved, std::optional<torch::Tensor> sh_index,
-                                           bool vector_path, bool bf16, bool amx);
+                                           bool vector_path, bool bf16, bool amx, bool density_only);
 void interleave_pair_into(std::vector<torch::Tensor> out, std::vector<torch::Tensor> dense_a,
                           std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> dense_b,
                           std::vector<torch::Tensor> planes_b, bool write_first);
