@@ -1,7 +1,7 @@
 """Where an edit stage's time goes: a dual-field and a single-field IDU run, broken down by phase.
 
     python -m benchmarks.profile_edit [--scene campsite] [--iterations 100] [--fit-iterations 600]
-                                      [--fit-dir DIR] [--threads 2]
+                                      [--fit-dir DIR] [--threads 2] [--compare REV|none]
 
 Fits f_S once with the fit stage (cached in --fit-dir, default $TMPDIR/dualnerf-profile-edit/<scene>-<N>;
 reuse it with the same arguments), then runs `--iterations` editing iterations of the full DualNeRF
@@ -15,6 +15,10 @@ variant (DF+SA+CCI) and of the single-field baseline with the edit stage's updat
     (field forward = the feature look-ups; "field MLPs" / "density MLP" are timed separately; the dual
     field's look-ups of both fields run in one kernel pass, timed as "look-ups f_S + f_D")
     checkpoint I/O  save_state + load_state of one checkpoint
+
+--compare REV (default: the commit before issue 30's changes; 'none' skips it) then runs the same
+profile as commit REV has it (a temporary git worktree, its own stage defaults, the same f_S) and prints
+both side by side: the before/after table of `make bench` (benchmarks.revision).
 
 The timers wrap the library's functions from outside (nothing in dualnerf/ knows about them), so the
 numbers include only a few microseconds of overhead per call. Everything runs on this process's
@@ -30,6 +34,9 @@ import time
 from collections import defaultdict
 from contextlib import contextmanager
 from pathlib import Path
+
+# The last commit before issue 30's speed changes (same bits, fewer samples, fused occupancy refresh).
+BEFORE_ISSUE_30 = "25ad900"
 
 
 class PhaseTimer:
@@ -162,8 +169,10 @@ def _profile_variant(label, dual_field, args, data_dir, static, dataset, tmp: Pa
     from dualnerf import kernels
     saved["pair"] = timer.wrap(kernels, "fused_pair_features",
                                lambda: f"{where[0]}: look-ups f_S + f_D (one kernel pass)")
+    # In a training step the inference kernel runs only in the occupancy refresh (density only).
     saved["inference"] = timer.wrap(kernels, "field_inference",
-                                    lambda: f"{where[0]}: field inference kernel (look-ups + MLPs, fused)")
+                                    lambda: "step: occupancy refresh (fused density kernel)" if where[0] == "step"
+                                    else "update: field inference kernel (look-ups + MLPs, fused)")
     saved["sampler"] = timer.wrap(rendering, "ray_samples", lambda: f"{where[0]}: sampler (proposal + occupancy)")
     saved["render_rays"] = timer.wrap(rendering, "render_rays",
                                       lambda: f"{where[0]}: render rest (compositing, packing)")
@@ -249,6 +258,8 @@ def _print(result) -> None:
     print(f"  estimated edit stage at the CPU preset ({preset.iterations} iterations, {n_updates} updates): "
           f"{estimate / 60:.1f} min (+ probes and checkpoints)")
     result["estimate"] = estimate
+    result["summary"] = {"iteration_ms": 1000 * result["total"] / n_it, "step_ms": 1000 * per["step"],
+                         "update_ms": 1000 * per["update"]}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -256,20 +267,57 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.profile_edit")
     add_fitted_field_arguments(parser, threads=2)
     parser.add_argument("--iterations", type=int, default=100, help="editing iterations per variant")
+    parser.add_argument("--compare", default=BEFORE_ISSUE_30,
+                        help="after this profile, run the same one as this commit has it (its own defaults, the "
+                             "same f_S) and print both side by side; 'none': skip (default: the commit before "
+                             "issue 30's changes)")
     args = parser.parse_args([] if argv is None else argv)
+    if args.fit_dir is None:                 # one f_S for both runs of a comparison
+        args.fit_dir = str(Path(tempfile.gettempdir()) / "dualnerf-profile-edit" / f"{args.scene}-{args.fit_iterations}")
+
+    from stages.edit import EditParams
 
     with tempfile.TemporaryDirectory(prefix="profile-edit-") as tmp:
         tmp = Path(tmp)
         data_dir, dataset, static = load_fitted_field(args, tmp)
         print(f"{args.scene} {dataset.width}x{dataset.height}, {len(dataset.indices('train'))} training views, "
-              f"occupancy {static.occupancy.fraction():.2f}, samples/ray {static.config.samples_per_ray} "
-              f"(render {static.config.render_samples_per_ray})")
+              f"occupancy {static.occupancy.fraction():.2f}, f_S fitted at {static.config.samples_per_ray} samples/ray, "
+              f"edited at {EditParams().samples_per_ray or static.config.samples_per_ray}")
         results = [_profile_variant("DF+SA+CCI (dual field)", True, args, data_dir, static, dataset, tmp),
                    _profile_variant("baseline (single field)", False, args, data_dir, static, dataset, tmp)]
         for result in results:
             _print(result)
             print(flush=True)
         print(f"\ndual / single loop time: {results[0]['total'] / results[1]['total']:.2f}")
+    if args.compare != "none":
+        _compare(args, results)
+
+
+def _compare(args, results) -> None:
+    """The same profile at commit args.compare, then both side by side (one run each, same host)."""
+    from benchmarks.revision import RevisionUnavailable, parse_edit_profile, profile_revision
+
+    argv = [f"--{name.replace('_', '-')}={getattr(args, name)}" for name in
+            ("scene", "fit_iterations", "fit_dir", "max_size", "render_samples", "threads", "iterations")]
+    print(f"\n--- the same profile at {args.compare} (its own stage defaults, the same f_S) ---", flush=True)
+    try:
+        before = parse_edit_profile(profile_revision(args.compare, "benchmarks.profile_edit", argv))
+    except RevisionUnavailable as error:
+        print(f"no comparison: {error}")
+        return
+    print(f"\nbefore ({args.compare}) / after (this checkout), ms, one run each, load {os.getloadavg()[0]:.2f}:")
+    print(f"  {'':34s} {'before':>9s} {'after':>9s} {'after/before':>13s}")
+    for result in results:
+        old = before.get(result["label"], {})
+        for key, name in (("iteration_ms", "per iteration"), ("step_ms", "training step"),
+                          ("update_ms", "view update")):
+            new = result["summary"][key]
+            was = old.get(key)
+            ratio = f"{new / was:13.2f}" if was else f"{'-':>13s}"
+            print(f"  {result['label'] + ': ' + name if key == 'iteration_ms' else '    ' + name:34s} "
+                  f"{was if was is not None else float('nan'):9.0f} {new:9.0f} {ratio}")
+    now = results[0]["total"] / results[1]["total"]
+    print(f"  {'dual / single':34s} {before.get('dual_over_single', float('nan')):9.2f} {now:9.2f}")
 
 
 if __name__ == "__main__":

@@ -237,7 +237,7 @@ def test_samples_per_ray_sets_training_and_view_update_samples(small, monkeypatc
     # training ray and every rendered ray evaluates at most that many; 0 keeps the field's counts.
     from dualnerf import rendering
 
-    _, _, dataset, static = small
+    _, _, _, static = small
     counts = []
     original = rendering.render_rays
 
