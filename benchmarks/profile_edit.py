@@ -306,7 +306,7 @@ def _compare(args, results) -> None:
         print(f"no comparison: {error}")
         return
     print(f"\nbefore ({args.compare}) / after (this checkout), ms, one run each, load {os.getloadavg()[0]:.2f}:")
-    print(f"  {'':34s} {'before':>9s} {'after':>9s} {'after/before':>13s}")
+    print(f"  {'':46s} {'before':>9s} {'after':>9s} {'after/before':>13s}")
     for result in results:
         old = before.get(result["label"], {})
         for key, name in (("iteration_ms", "per iteration"), ("step_ms", "training step"),
@@ -314,10 +314,10 @@ def _compare(args, results) -> None:
             new = result["summary"][key]
             was = old.get(key)
             ratio = f"{new / was:13.2f}" if was else f"{'-':>13s}"
-            print(f"  {result['label'] + ': ' + name if key == 'iteration_ms' else '    ' + name:34s} "
+            print(f"  {result['label'] + ': ' + name if key == 'iteration_ms' else '    ' + name:46s} "
                   f"{was if was is not None else float('nan'):9.0f} {new:9.0f} {ratio}")
     now = results[0]["total"] / results[1]["total"]
-    print(f"  {'dual / single':34s} {before.get('dual_over_single', float('nan')):9.2f} {now:9.2f}")
+    print(f"  {'dual / single':46s} {before.get('dual_over_single', float('nan')):9.2f} {now:9.2f}")
 
 
 if __name__ == "__main__":
