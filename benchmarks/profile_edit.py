@@ -289,7 +289,9 @@ def main(argv: list[str] | None = None) -> None:
             _print(result)
             print(flush=True)
         print(f"\ndual / single loop time: {results[0]['total'] / results[1]['total']:.2f}")
-    if args.compare != "none":
+    from benchmarks.revision import NESTED_RUN
+
+    if args.compare != "none" and not os.environ.get(NESTED_RUN):
         _compare(args, results)
 
 

@@ -17,6 +17,7 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+NESTED_RUN = "DUALNERF_BENCH_REVISION"       # set in the environment of a run at an earlier commit
 
 
 class RevisionUnavailable(RuntimeError):
@@ -32,7 +33,8 @@ def profile_revision(revision: str, module: str, argv: list[str]) -> str:
         if added.returncode != 0:
             raise RevisionUnavailable(f"cannot check out {revision}: {added.stderr.strip() or added.stdout.strip()}")
         try:
-            env = {**os.environ, "PYTHONPATH": str(tree)}
+            # NESTED_RUN tells a profile that can compare itself not to start another comparison.
+            env = {**os.environ, "PYTHONPATH": str(tree), NESTED_RUN: revision}
             done = subprocess.run([sys.executable, "-m", module, *argv], cwd=tree, env=env, text=True,
                                   stdout=subprocess.PIPE, check=False)
             if done.returncode != 0:
