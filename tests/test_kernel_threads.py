@@ -75,8 +75,18 @@ def test_field_inference_single_and_dual(precision, monkeypatch):
                         monkeypatch)
 
 
-def test_mlp_training_forward_and_backward(monkeypatch):
-    model = field(2)
+# The training kernel's weight-gradient tiles: 64 wide with 15 geometry features (the fields' layout: the
+# density output's 16 and the colour output's 3 summed by inputs, unmasked), and 24 wide with 6 (inputs
+# padded to 32, so masked loads, and 7 outputs: the tiles' remainders).
+ODD_WIDTHS = FieldConfig(grid_resolutions=(8, 16, 32), plane_resolutions=(32, 64), hidden_width=24, geo_features=6)
+
+
+@pytest.mark.parametrize("config", [CONFIG, ODD_WIDTHS], ids=["64-wide", "24-wide"])
+def test_mlp_training_forward_and_backward(config, monkeypatch):
+    model = RadianceField(config, torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(torch.randn(p.shape, generator=torch.Generator().manual_seed(3)) * 0.3)
     m = 3 * 1024 + 77                                  # several gradient groups and a short last block
     n_features = model.mlp_layers()[0].in_features
     features = torch.randn(m, n_features, generator=torch.Generator().manual_seed(4), requires_grad=True)

@@ -125,67 +125,102 @@ void accumulate(float* g, float* bias, int in, int out_pad, const float* x, int6
   accumulate_portable(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
 }
 
-// The same sums for a layer with few outputs (the colour output's 3), in the transposed layout: gt (out x
-// in_pad) += sum over rows of dy[r][j] * x[r][:], vectorised over the inputs (over the 16-padded outputs
-// it would be 3 useful lanes of 16). Per entry the same chain over the rows, so the same bits as
-// `accumulate` would give. bias (out) as there.
-void accumulate_by_inputs_portable(float* gt, float* bias, int in, int in_pad, int out, const float* x, int64_t ld_x,
-                                   const float* dy, int64_t ld_dy, int64_t rows) {
+// The same sums for a layer with few outputs (the density output's 16, the colour output's 3), in the
+// transposed layout: gt (out x in_pad) += sum over rows of dy[r][j] * x[r][:], vectorised over the
+// inputs (over the 16-padded outputs a row would give one vector of FMAs per 8 or 16 broadcast loads,
+// or 3 useful lanes of 16). Per entry the same chain over the rows, so the same bits as `accumulate`
+// would give. bias (out_pad; dy's padding columns are zeros) as there.
+void accumulate_by_inputs_portable(float* gt, float* bias, int in, int in_pad, int out, int out_pad, const float* x,
+                                   int64_t ld_x, const float* dy, int64_t ld_dy, int64_t rows) {
   for (int j = 0; j < out; ++j)
     for (int k = 0; k < in; ++k) {
       float acc = gt[j * in_pad + k];
       for (int64_t r = 0; r < rows; ++r) acc = std::fma(x[r * ld_x + k], dy[r * ld_dy + j], acc);
       gt[j * in_pad + k] = acc;
     }
-  for (int j = 0; j < out; ++j) {
+  for (int j = 0; j < out_pad; ++j) {
     float acc = bias[j];
     for (int64_t r = 0; r < rows; ++r) acc += dy[r * ld_dy + j];
     bias[j] = acc;
   }
 }
 
-constexpr int kMaxByInputs = 4;     // layers with at most this many outputs accumulate by inputs
+constexpr int kMaxByInputs = 16;    // layers with at most this many outputs accumulate by inputs
 
 #ifdef DUALNERF_HAVE_AVX512
-template <int NV>
-__attribute__((target("avx512f"))) void accumulate_by_inputs_avx512(float* gt, float* bias, int in, int in_pad,
-                                                                    int out, const float* x, int64_t ld_x,
-                                                                    const float* dy, int64_t ld_dy, int64_t rows) {
-  __m512 acc[kMaxByInputs][NV];
-  __mmask16 lanes[NV];
-  for (int v = 0; v < NV; ++v) lanes[v] = first_lanes(in - kLanes * v);
-  for (int j = 0; j < out; ++j)
+// JB outputs x NV input vectors of gt in registers; per row NV input loads, JB broadcasts, JB * NV FMAs.
+template <int NV, int JB, bool kFullRows>
+__attribute__((target("avx512f"))) inline void accumulate_by_inputs_tile_avx512(float* gt, int in_pad,
+                                                                                const __mmask16* lanes,
+                                                                                const float* x, int64_t ld_x,
+                                                                                const float* dy, int64_t ld_dy,
+                                                                                int64_t rows) {
+  __m512 acc[JB][NV];
+  for (int j = 0; j < JB; ++j)
     for (int v = 0; v < NV; ++v) acc[j][v] = _mm512_loadu_ps(gt + j * in_pad + kLanes * v);
   for (int64_t r = 0; r < rows; ++r) {
     __m512 xs[NV];
-    for (int v = 0; v < NV; ++v) xs[v] = _mm512_maskz_loadu_ps(lanes[v], x + r * ld_x + kLanes * v);
-    for (int j = 0; j < out; ++j) {
+    for (int v = 0; v < NV; ++v)
+      xs[v] = kFullRows ? _mm512_loadu_ps(x + r * ld_x + kLanes * v)
+                        : _mm512_maskz_loadu_ps(lanes[v], x + r * ld_x + kLanes * v);
+    for (int j = 0; j < JB; ++j) {
       const __m512 d = _mm512_set1_ps(dy[r * ld_dy + j]);
       for (int v = 0; v < NV; ++v) acc[j][v] = _mm512_fmadd_ps(xs[v], d, acc[j][v]);
     }
   }
-  for (int j = 0; j < out; ++j)
+  for (int j = 0; j < JB; ++j)
     for (int v = 0; v < NV; ++v) _mm512_storeu_ps(gt + j * in_pad + kLanes * v, acc[j][v]);
-  for (int j = 0; j < out; ++j) {
-    float a = bias[j];
-    for (int64_t r = 0; r < rows; ++r) a += dy[r * ld_dy + j];
-    bias[j] = a;
+}
+
+template <int NV>
+__attribute__((target("avx512f"))) void accumulate_by_inputs_avx512(float* gt, float* bias, int in, int in_pad,
+                                                                    int out, int out_pad, const float* x,
+                                                                    int64_t ld_x, const float* dy, int64_t ld_dy,
+                                                                    int64_t rows) {
+  constexpr int JB = NV >= 4 ? 4 : 8;
+  __mmask16 lanes[NV];
+  for (int v = 0; v < NV; ++v) lanes[v] = first_lanes(in - kLanes * v);
+  // Rows without padding load whole vectors (no masks: with them GCC kept the accumulators in memory).
+  auto tiles = [&](auto full) {
+    constexpr bool kFull = decltype(full)::value;
+    int j = 0;
+    for (; j + JB <= out; j += JB)
+      accumulate_by_inputs_tile_avx512<NV, JB, kFull>(gt + j * in_pad, in_pad, lanes, x, ld_x, dy + j, ld_dy, rows);
+    if (out - j == 3) {
+      accumulate_by_inputs_tile_avx512<NV, 3, kFull>(gt + j * in_pad, in_pad, lanes, x, ld_x, dy + j, ld_dy, rows);
+      return;
+    }
+    for (; j + 2 <= out; j += 2)
+      accumulate_by_inputs_tile_avx512<NV, 2, kFull>(gt + j * in_pad, in_pad, lanes, x, ld_x, dy + j, ld_dy, rows);
+    for (; j < out; ++j)
+      accumulate_by_inputs_tile_avx512<NV, 1, kFull>(gt + j * in_pad, in_pad, lanes, x, ld_x, dy + j, ld_dy, rows);
+  };
+  if (in == in_pad)
+    tiles(std::true_type{});
+  else
+    tiles(std::false_type{});
+  // The bias: one vector chain per 16 outputs over the rows (lane j: the same additions in the same order
+  // as the portable loop).
+  for (int v = 0; v < out_pad / kLanes; ++v) {
+    __m512 acc = _mm512_loadu_ps(bias + kLanes * v);
+    for (int64_t r = 0; r < rows; ++r) acc = _mm512_add_ps(acc, _mm512_loadu_ps(dy + r * ld_dy + kLanes * v));
+    _mm512_storeu_ps(bias + kLanes * v, acc);
   }
 }
 #endif
 
-void accumulate_by_inputs(float* gt, float* bias, int in, int in_pad, int out, const float* x, int64_t ld_x,
-                          const float* dy, int64_t ld_dy, int64_t rows, bool vector_path) {
+void accumulate_by_inputs(float* gt, float* bias, int in, int in_pad, int out, int out_pad, const float* x,
+                          int64_t ld_x, const float* dy, int64_t ld_dy, int64_t rows, bool vector_path) {
 #ifdef DUALNERF_HAVE_AVX512
-  if (vector_path && out <= kMaxByInputs) {
+  if (vector_path) {
     switch (in_pad / kLanes) {
-      case 1: return accumulate_by_inputs_avx512<1>(gt, bias, in, in_pad, out, x, ld_x, dy, ld_dy, rows);
-      case 2: return accumulate_by_inputs_avx512<2>(gt, bias, in, in_pad, out, x, ld_x, dy, ld_dy, rows);
-      case 4: return accumulate_by_inputs_avx512<4>(gt, bias, in, in_pad, out, x, ld_x, dy, ld_dy, rows);
+      case 1: return accumulate_by_inputs_avx512<1>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
+      case 2: return accumulate_by_inputs_avx512<2>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
+      case 4: return accumulate_by_inputs_avx512<4>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
     }
   }
 #endif
-  accumulate_by_inputs_portable(gt, bias, in, in_pad, out, x, ld_x, dy, ld_dy, rows);
+  accumulate_by_inputs_portable(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
 }
 
 // Zeroes dy[r][j] where the layer's saved output act[r][j] (after its ReLU) is not positive: the ReLU's
@@ -325,8 +360,8 @@ std::vector<torch::Tensor> mlp_train_backward(torch::Tensor grad_sigma, torch::T
   auto accumulate_layer = [&](int i, float* g, const float* x, int64_t ld_x, const float* dy, int64_t ld_dy,
                               int64_t rows) {
     if (by_inputs[i])
-      accumulate_by_inputs(g + offset[2 * i], g + offset[2 * i + 1], l[i].in, padded(l[i].in), l[i].out, x, ld_x, dy,
-                           ld_dy, rows, vec);
+      accumulate_by_inputs(g + offset[2 * i], g + offset[2 * i + 1], l[i].in, padded(l[i].in), l[i].out, l[i].out_pad,
+                           x, ld_x, dy, ld_dy, rows, vec);
     else
       accumulate(g + offset[2 * i], g + offset[2 * i + 1], l[i].in, l[i].out_pad, x, ld_x, dy, ld_dy, rows, vec);
   };
