@@ -72,6 +72,9 @@ __attribute__((target("avx512f"))) void adam_chunk_avx512(const AdamUpdate& u, f
 }
 #endif
 
+constexpr int64_t kAdamAhead = 64;     // chunks (of 16 values: one cache line) prefetched ahead; 4-256
+                                       // measured, 64-256 alike, ~1.2x the pass without
+
 // adam_step with skip_zero on the touched chunks of a TableGradients buffer only (an untouched chunk's
 // gradients are all zero, so skip_zero would leave it as it is anyway: the same bits as adam_step), then
 // zeroes those gradients and flags for the next backward.
@@ -92,6 +95,16 @@ void adam_step_touched(torch::Tensor param, torch::Tensor grad, torch::Tensor to
   const bool vec = avx512_available();
   parallel_for(0, touched.numel(), 1 << 12, [&](int64_t chunk_begin, int64_t chunk_end) {
     for (int64_t c = chunk_begin; c < chunk_end; ++c) {
+      // The touched chunks are scattered over tables larger than the caches and each waits on four
+      // lines (p, g, m, v): those of the chunk kAdamAhead further on are requested now.
+      const int64_t ahead = c + kAdamAhead;
+      if (ahead < chunk_end && flags[ahead]) {
+        const int64_t at = ahead * kTouchChunk;
+        __builtin_prefetch(p + at, 1);     // 1: for writing
+        __builtin_prefetch(g + at, 1);
+        __builtin_prefetch(m + at, 1);
+        __builtin_prefetch(v + at, 1);
+      }
       if (!flags[c]) continue;
       const int64_t begin = c * kTouchChunk, end = std::min(n, begin + kTouchChunk);
 #ifdef DUALNERF_HAVE_AVX512

@@ -214,6 +214,29 @@ __attribute__((target("avx512f"))) inline int corners16_to_arrays(const Table& t
   return n;
 }
 
+// ---- Prefetching the backward's gradient rows ----
+constexpr int64_t kScatterAhead = 1;    // groups of 16 points whose gradient lines are requested ahead (1-8
+                                        // measured: 1 was best, 1.3-1.9x the backward without)
+constexpr int64_t kRing = 4;            // > kScatterAhead
+
+struct alignas(64) GroupCorners {
+  int32_t off[8][kLookupLanes];
+  float w[8][kLookupLanes];
+  int n;
+};
+
+// Requests (for writing) the lines of a group's corners in a buffer laid out like table t: per corner pair
+// adjacent along the first axis, the first corner's first float and the second corner's last.
+inline void prefetch_corners(float* buffer, const GroupCorners& c, const Table& t) {
+  const int64_t span = t.stride + t.channels - 1;
+  for (int k = 0; k < c.n; k += 2)
+    for (int64_t lane = 0; lane < kLookupLanes; ++lane) {
+      float* first = buffer + c.off[k][lane];
+      _mm_prefetch(reinterpret_cast<const char*>(first), _MM_HINT_ET0);
+      _mm_prefetch(reinterpret_cast<const char*>(first + span), _MM_HINT_ET0);
+    }
+}
+
 #endif
 
 }  // namespace
@@ -326,15 +349,26 @@ void accumulate_gradients(const std::vector<Table>& tables, const float* xp, con
       int64_t i = 0;
 #ifdef DUALNERF_HAVE_AVX512
       if (n_vec > 0 && vector_lookup_applies(t)) {
-        for (; i < n_vec; i += kLookupLanes) {
-          int32_t offsets[8][kLookupLanes];
-          float weights[8][kLookupLanes];
-          const int n = corners16_to_arrays(t, xs.data() + i, n_vec, offsets, weights);
+        // The additions wait on the gradient buffer's cache lines (random rows of tables too large for the
+        // caches): group g + kScatterAhead's corners are computed and their lines requested while group g
+        // adds. The same corners and additions in the same order: the same bits.
+        GroupCorners ring[kRing];
+        const int64_t groups = n_vec / kLookupLanes;
+        auto prepare = [&](int64_t g) {
+          GroupCorners& c = ring[g % kRing];
+          c.n = corners16_to_arrays(t, xs.data() + g * kLookupLanes, n_vec, c.off, c.w);
+          prefetch_corners(grad, c, t);
+        };
+        for (int64_t g = 0; g < std::min(kScatterAhead, groups); ++g) prepare(g);
+        for (int64_t g = 0; g < groups; ++g) {
+          if (g + kScatterAhead < groups) prepare(g + kScatterAhead);
+          const GroupCorners& c = ring[g % kRing];
           for (int64_t lane = 0; lane < kLookupLanes; ++lane) {
-            const float* go = gp + n_out * (i + lane) + t.column;
-            for (int corner = 0; corner < n; ++corner) add(go, offsets[corner][lane], weights[corner][lane]);
+            const float* go = gp + n_out * (g * kLookupLanes + lane) + t.column;
+            for (int corner = 0; corner < c.n; ++corner) add(go, c.off[corner][lane], c.w[corner][lane]);
           }
         }
+        i = n_vec;
       }
 #endif
       for (; i < m; ++i) {
