@@ -141,6 +141,29 @@ def test_sampler_packing_and_compositing(monkeypatch):
                                                   kernels.vector_path()), monkeypatch)
 
 
+@pytest.mark.parametrize("n_samples, n_proposal, jittered", [(1, 3, True), (2, 1, False), (7, 5, True), (48, 256, False)])
+def test_sampler_walk_at_edge_shapes(n_samples, n_proposal, jittered, monkeypatch):
+    """The 16-ray sampler places every edge in the bin the scalar walk does: one sample, one proposal bin,
+    no jitter, rays whose interval is empty (stop <= start) and rays that miss the occupied cells."""
+    g = torch.Generator().manual_seed(9)
+    density = torch.rand(16, 16, 16, generator=g) ** 8 * 50
+    density[density < 1] = 0
+    n = 77
+    origins = torch.rand(n, 3, generator=g) * 2.4 - 1.2
+    dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    t_start = torch.rand(n, generator=g) * 0.5
+    t_end = t_start + torch.rand(n, generator=g) * 3 - 0.3
+    jitter = torch.rand(n, n_samples - 1, generator=g) if jittered else torch.zeros(0, 0)
+    module = kernels.grid_kernel()
+    t, delta, occupied = same_everywhere(lambda: module.ray_samples(
+        origins, dirs, t_start, t_end, density, density > 0, 0.5, n_proposal, n_samples, 0.1, jitter,
+        kernels.vector_path()), monkeypatch)
+    # Intervals tile [start, max(start, stop)] in order: lengths >= 0 summing to the interval.
+    assert (delta >= 0).all()
+    torch.testing.assert_close(delta.sum(-1), (t_end - t_start).clamp(min=0), rtol=1e-5, atol=1e-5)
+    assert not occupied[t_end <= t_start].any()
+
+
 def test_adam_steps(monkeypatch):
     g = torch.Generator().manual_seed(8)
     param = torch.randn(70001, generator=g)
