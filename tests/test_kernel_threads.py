@@ -158,8 +158,11 @@ def test_sampler_walk_at_edge_shapes(n_samples, n_proposal, jittered, monkeypatc
     t, delta, occupied = same_everywhere(lambda: module.ray_samples(
         origins, dirs, t_start, t_end, density, density > 0, 0.5, n_proposal, n_samples, 0.1, jitter,
         kernels.vector_path()), monkeypatch)
-    # Intervals tile [start, max(start, stop)] in order: lengths >= 0 summing to the interval.
+    # Intervals tile [start, max(start, stop)] in order: lengths >= 0 summing to the interval, midpoints
+    # inside it and increasing.
     assert (delta >= 0).all()
+    assert (t >= t_start[:, None]).all() and (t <= torch.maximum(t_start, t_end)[:, None]).all()
+    assert (t[:, 1:] >= t[:, :-1]).all()
     torch.testing.assert_close(delta.sum(-1), (t_end - t_start).clamp(min=0), rtol=1e-5, atol=1e-5)
     assert not occupied[t_end <= t_start].any()
 
