@@ -14,11 +14,31 @@ the mask by one cell so surfaces straddling cell borders are not cut.
 """
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+# Cells per side of the blocks a refresh evaluates together. In the flat cell order a refresh's points
+# sweep whole rows of the feature planes (z fastest), and nearly every corner of the 1024^2 planes is a
+# cache miss; the points of a 4^3 block of cells read a few hundred texels per plane instead. A dual-field
+# refresh of the ablation's f_S (262k points, 1 thread): 140 ms in cell order, 91 / 96 / 99 ms in blocks
+# of 4 / 8 / 16 cells.
+REFRESH_TILE = 4
+
+
+@functools.lru_cache(maxsize=4)
+def tile_order(resolution: int, tile: int = REFRESH_TILE) -> torch.Tensor:
+    """Flat cell ids (cell_index order) sorted block by block: blocks of tile^3 cells in i, j, k order, the
+    cells of a block in i, j, k order (a border block of a resolution not divisible by `tile` is smaller)."""
+    cell = torch.arange(resolution ** 3)
+    i, j, k = cell // resolution ** 2, cell // resolution % resolution, cell % resolution
+    blocks = -(-resolution // tile)
+    block = ((i // tile) * blocks + j // tile) * blocks + k // tile
+    within = ((i % tile) * tile + j % tile) * tile + k % tile
+    return torch.argsort(block * tile ** 3 + within)
 
 
 class OccupancyGrid(nn.Module):
@@ -57,7 +77,12 @@ class OccupancyGrid(nn.Module):
         corner = torch.stack([ii, jj, kk], dim=-1).reshape(-1, 3)
         jitter = torch.rand(corner.shape, generator=generator)          # CPU draw: same on any device
         points = ((corner + jitter) * (2.0 / r) - 1.0).to(device)
-        sigma = torch.cat([density_fn(points[s:s + chunk]) for s in range(0, len(points), chunk)])
+        # Evaluated tile by tile (see tile_order), then put back in cell order: each point's density is
+        # the same, so is the grid.
+        order = tile_order(r).to(device)
+        tiled = points[order]
+        sigma = torch.empty(len(points), dtype=points.dtype, device=device)
+        sigma[order] = torch.cat([density_fn(tiled[s:s + chunk]) for s in range(0, len(tiled), chunk)])
         self.density.copy_(torch.maximum(self.density * decay, sigma.reshape(r, r, r).float()))
         # Never threshold above the mean so a still-faint early field keeps its most likely cells.
         threshold = min(float(sigma_threshold), float(self.density.mean()))

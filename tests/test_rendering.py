@@ -146,6 +146,37 @@ def test_occupancy_update_finds_an_analytic_sphere():
     assert 0.02 < grid.fraction() < 0.3
 
 
+@pytest.mark.parametrize("resolution", [8, 10])
+def test_occupancy_refresh_evaluates_block_by_block_and_stores_each_cells_own_density(resolution):
+    """The refresh evaluates its jittered points in blocks of cells (tile_order: a permutation, blocks of
+    REFRESH_TILE^3, a smaller border block when the resolution is not a multiple) and stores every
+    point's density in its own cell: the grid equals the one from the same draw in cell order."""
+    from dualnerf.occupancy import REFRESH_TILE, OccupancyGrid, tile_order
+
+    order = tile_order(resolution)
+    assert torch.equal(torch.sort(order).values, torch.arange(resolution ** 3))
+    first_block = order[:REFRESH_TILE ** 3]
+    ijk = torch.stack([first_block // resolution ** 2, first_block // resolution % resolution,
+                       first_block % resolution], dim=-1)
+    assert int(ijk.max()) == REFRESH_TILE - 1           # the first cells read are the corner block's
+
+    seen = []
+
+    def density(x):   # x-dependent, so a point in the wrong cell shows
+        seen.append(x.shape[0])
+        return 1.0 + 10.0 * (x[:, 0] + 1.0) + (x[:, 1] + 1.0) ** 2 + 0.1 * x[:, 2]    # > 0: decay 0 keeps it
+
+    grid = OccupancyGrid(resolution)
+    grid.update(density, torch.Generator().manual_seed(4), sigma_threshold=1.0, decay=0.0, chunk=100)
+    assert seen[0] == 100 and sum(seen) == resolution ** 3
+    # The reference: the same jitter draw, evaluated in cell order.
+    ar = torch.arange(resolution, dtype=torch.float32)
+    corner = torch.stack(torch.meshgrid(ar, ar, ar, indexing="ij"), dim=-1).reshape(-1, 3)
+    jitter = torch.rand(corner.shape, generator=torch.Generator().manual_seed(4))
+    points = (corner + jitter) * (2.0 / resolution) - 1.0
+    assert torch.equal(grid.density, density(points).reshape(resolution, resolution, resolution))
+
+
 def test_render_view_chunking_does_not_change_the_image():
     field = RadianceField(FieldConfig(grid_resolutions=(8, 16), samples_per_ray=32),
                           torch.Generator().manual_seed(3))
