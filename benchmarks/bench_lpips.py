@@ -15,16 +15,11 @@ import os
 import statistics
 import time
 
+from benchmarks.timing import median_seconds
+
 
 def _median_ms(fn, repeats: int, warmup: int = 3) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1000.0 * statistics.median(times)
+    return 1000.0 * median_seconds(fn, repeats, warmup=warmup)
 
 
 def pair_timings(repeats: int) -> dict[str, float]:

@@ -22,30 +22,19 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import tempfile
-import time
 from pathlib import Path
 
 from benchmarks.profile_edit import add_fitted_field_arguments, load_fitted_field
+from benchmarks.timing import median_seconds
 from stages.edit import EditParams
 
 BATCH_RAYS = EditParams().rays_per_batch        # a training step's rays at the edit stage's CPU preset
 BATCH_SAMPLES = EditParams().samples_per_ray
 
 
-def _median_ms(run, repeats: int, between=None) -> float:
-    run()                                       # warm-up
-    if between is not None:
-        between()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-        if between is not None:
-            between()
-    return 1e3 * statistics.median(times)
+def _ms(run, repeats: int, between=None) -> float:
+    return 1e3 * median_seconds(run, repeats, between=between)
 
 
 def batch_points(static, dataset, generator):
@@ -110,7 +99,7 @@ def main(argv: list[str] | None = None) -> None:
 
     rows = []
     for label, x in (("batch points", points), ("uniform in the cube", uniform), ("in a few cells", squeezed)):
-        rows.append((f"pair look-ups, {label}", _median_ms(pair_forward(x), args.repeats)))
+        rows.append((f"pair look-ups, {label}", _ms(pair_forward(x), args.repeats)))
     waiting = 1.0 - rows[2][1] / rows[0][1]
 
     tables = [*dense_d, *planes_d]
@@ -118,7 +107,7 @@ def main(argv: list[str] | None = None) -> None:
     n_features = module.encode_forward(points[:1], dense_d, planes_d, vector).shape[1]
     grad = torch.randn(m, n_features, generator=generator)
     rows.append(("look-up backward into the buffers, batch points",
-                 _median_ms(lambda: sink.add(points, grad, dense_d, planes_d), args.repeats, between=sink.clear)))
+                 _ms(lambda: sink.add(points, grad, dense_d, planes_d), args.repeats, between=sink.clear)))
     state = {id(t): (torch.zeros_like(t), torch.zeros_like(t)) for t in tables}
 
     def adam():
@@ -127,7 +116,7 @@ def main(argv: list[str] | None = None) -> None:
             exp_avg, exp_avg_sq = state[id(t)]
             module.adam_step_touched(t, buffer, touched, exp_avg, exp_avg_sq, 0.9, 0.99, 1e-9, 1.0, 1e-15)
 
-    rows.append(("Adam on the touched chunks", _median_ms(adam, args.repeats,
+    rows.append(("Adam on the touched chunks", _ms(adam, args.repeats,
                                                           between=lambda: sink.add(points, grad, dense_d, planes_d))))
 
     view = int(dataset.indices("train")[0])
@@ -137,7 +126,7 @@ def main(argv: list[str] | None = None) -> None:
                                      torch.full((n_rays,), float(dataset.far[view])))
     jitter = torch.rand(n_rays, BATCH_SAMPLES - 1, generator=generator)
     rows.append((f"render sampler, {n_rays} rays x {BATCH_SAMPLES} samples",
-                 _median_ms(lambda: ray_samples(static.occupancy, static.config, origins, dirs, t_start, t_end,
+                 _ms(lambda: ray_samples(static.occupancy, static.config, origins, dirs, t_start, t_end,
                                                 BATCH_SAMPLES, jitter), args.repeats)))
     for label, ms in rows:
         print(f"  {label:<60s} {ms:8.2f} ms")

@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from benchmarks.timing import median_seconds
 from pipeline.dag import External, Step, compute_keys
 from pipeline.executors import SerialExecutor
 from pipeline.hashing import ContentHasher
@@ -148,21 +149,11 @@ def _measure_grid(work: Path, rows: list[tuple[str, str]]) -> None:
                  "seeds=[0,1,2,3,4,5,6,7,8,9,10]"]
     store = Store(work / "grid-cache")
     cells = len(load_workflow(workflow, overrides).cells)
-    expand = median_time(lambda: load_workflow(workflow, overrides))
-    both = median_time(lambda: dry_run(load_workflow(workflow, overrides).steps, registry=STAGES, store=store))
+    expand = median_seconds(lambda: load_workflow(workflow, overrides), 7, warmup=0)
+    both = median_seconds(lambda: dry_run(load_workflow(workflow, overrides).steps, registry=STAGES, store=store),
+                          7, warmup=0)
     rows.append((f"{cells}-cell workflow grid: expand (median of 7)", f"{expand * 1000:.0f} ms"))
     rows.append((f"{cells}-cell workflow grid: expand + dry-run (median of 7; target < 1 s)", f"{both * 1000:.0f} ms"))
-
-
-def median_time(func, repeat: int = 7) -> float:
-    import statistics
-
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        func()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 if __name__ == "__main__":

@@ -16,12 +16,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import statistics
 import tempfile
-import time
 from pathlib import Path
 
 from benchmarks.profile_edit import add_fitted_field_arguments, load_fitted_field
+from benchmarks.timing import median_seconds
 
 
 def _record_inference_calls(model, dataset, view) -> list[tuple]:
@@ -58,13 +57,7 @@ def _replay_seconds(model, blend, calls, repeats: int) -> float:
             for x, sh, index in calls:
                 model.query(x, None, blend=blend, dir_features=sh, dir_index=index)
 
-    replay()                                                        # warm-up
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        replay()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return median_seconds(replay, repeats)
 
 
 def main(argv: list[str] | None = None) -> None:

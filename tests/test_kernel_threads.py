@@ -66,7 +66,7 @@ def test_look_ups_forward_and_backward(monkeypatch):
 def test_field_inference_single_and_dual(precision, monkeypatch):
     a, b = field(0), field(5)
     x = points(1999)
-    sh = a.direction_features(torch.nn.functional.normalize(torch.randn(1999, 3), dim=-1))
+    sh = a.direction_features(torch.nn.functional.normalize(torch.randn(1999, 3, generator=torch.Generator().manual_seed(11)), dim=-1))
     monkeypatch.setenv("DUALNERF_KERNEL_AMX", "0")    # AMX tiles and the emulation differ (keyed: bf16_mlp)
     with torch.no_grad(), kernels.mlp_precision(precision):
         same_everywhere(lambda: kernels.field_inference(x, sh, a.grid_tables(), a.mlp_layers()), monkeypatch)
@@ -90,7 +90,7 @@ def test_mlp_training_forward_and_backward(config, monkeypatch):
     m = 3 * 1024 + 77                                  # several gradient groups and a short last block
     n_features = model.mlp_layers()[0].in_features
     features = torch.randn(m, n_features, generator=torch.Generator().manual_seed(4), requires_grad=True)
-    sh = model.direction_features(torch.nn.functional.normalize(torch.randn(50, 3), dim=-1))
+    sh = model.direction_features(torch.nn.functional.normalize(torch.randn(50, 3, generator=torch.Generator().manual_seed(12)), dim=-1))
     index = torch.randint(50, (m,), generator=torch.Generator().manual_seed(6))
     weights = torch.randn(m, 4, generator=torch.Generator().manual_seed(7))
 

@@ -100,10 +100,10 @@ void adam_step_touched(torch::Tensor param, torch::Tensor grad, torch::Tensor to
       const int64_t ahead = c + kAdamAhead;
       if (ahead < chunk_end && flags[ahead]) {
         const int64_t at = ahead * kTouchChunk;
-        __builtin_prefetch(p + at, 1);     // 1: for writing
-        __builtin_prefetch(g + at, 1);
-        __builtin_prefetch(m + at, 1);
-        __builtin_prefetch(v + at, 1);
+        __builtin_prefetch(p + at);        // prefetcht0 (the build targets no prefetch-for-write)
+        __builtin_prefetch(g + at);
+        __builtin_prefetch(m + at);
+        __builtin_prefetch(v + at);
       }
       if (!flags[c]) continue;
       const int64_t begin = c * kTouchChunk, end = std::min(n, begin + kTouchChunk);

@@ -225,15 +225,15 @@ struct alignas(64) GroupCorners {
   int n;
 };
 
-// Requests (for writing) the lines of a group's corners in a buffer laid out like table t: per corner pair
-// adjacent along the first axis, the first corner's first float and the second corner's last.
+// Requests the lines of a group's corners in a buffer laid out like table t (into L1: prefetcht0): per
+// corner pair adjacent along the first axis, the first corner's first float and the second corner's last.
 inline void prefetch_corners(float* buffer, const GroupCorners& c, const Table& t) {
   const int64_t span = t.stride + t.channels - 1;
   for (int k = 0; k < c.n; k += 2)
     for (int64_t lane = 0; lane < kLookupLanes; ++lane) {
       float* first = buffer + c.off[k][lane];
-      _mm_prefetch(reinterpret_cast<const char*>(first), _MM_HINT_ET0);
-      _mm_prefetch(reinterpret_cast<const char*>(first + span), _MM_HINT_ET0);
+      _mm_prefetch(reinterpret_cast<const char*>(first), _MM_HINT_T0);
+      _mm_prefetch(reinterpret_cast<const char*>(first + span), _MM_HINT_T0);
     }
 }
 
