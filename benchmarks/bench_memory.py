@@ -6,7 +6,7 @@ On the ablation's f_S (fitted once and cached, as in benchmarks.profile_edit), o
 edits run, medians of --repeats:
 
 - the dual field's look-ups (f_S and f_D tables, one kernel pass) at a training batch's sample points
-  (the CPU preset's 1024 random training pixels' rays, 32 samples each, the occupied ones), at the same number of points
+  (the edit stage's CPU preset: random training pixels' rays, their occupied samples), at as many points
   spread uniformly over the scene cube, and at points squeezed into a few grid cells. The last run has
   the same instructions as the others but finds every corner in the L1 cache: the difference is time
   spent waiting for table rows (the fine tables, ~50 MB per field, do not fit the caches);
@@ -38,24 +38,22 @@ def _ms(run, repeats: int, between=None) -> float:
 
 
 def batch_points(static, dataset, generator):
-    """The occupied sample points of one training batch: BATCH_RAYS random training pixels' rays through
-    the render sampler at BATCH_SAMPLES samples (jittered), as a training step places them."""
+    """The occupied sample points of one training batch: BATCH_RAYS random training pixels' rays (drawn as
+    RayTrainer.sample_batch draws them) through the render sampler at BATCH_SAMPLES jittered samples."""
     import torch
 
-    from dualnerf.cameras import view_rays
+    from dualnerf.cameras import pixel_rays
     from dualnerf.rendering import ray_cube_bounds, ray_samples
 
-    views = [int(v) for v in dataset.indices("train")]
-    origins, dirs = [], []
-    for view in views:
-        o, d = view_rays(dataset.c2w[view], dataset.intrinsics[view], dataset.width, dataset.height)
-        origins.append(o)
-        dirs.append(d)
-    origins, dirs = torch.cat(origins), torch.cat(dirs)
-    pick = torch.randint(origins.shape[0], (BATCH_RAYS,), generator=generator)
-    origins, dirs = origins[pick], dirs[pick]
-    near, far = float(dataset.near[views[0]]), float(dataset.far[views[0]])
-    t_start, t_end = ray_cube_bounds(origins, dirs, torch.full((BATCH_RAYS,), near), torch.full((BATCH_RAYS,), far))
+    train = torch.as_tensor(dataset.indices("train"), dtype=torch.long)
+    views = train[torch.randint(len(train), (BATCH_RAYS,), generator=generator)]
+    u = torch.randint(dataset.width, (BATCH_RAYS,), generator=generator)
+    v = torch.randint(dataset.height, (BATCH_RAYS,), generator=generator)
+    c2w = torch.as_tensor(dataset.c2w, dtype=torch.float32)[views]
+    origins, dirs = pixel_rays(c2w, torch.as_tensor(dataset.intrinsics, dtype=torch.float32)[views], u, v)
+    near = torch.as_tensor(dataset.near, dtype=torch.float32)[views]
+    far = torch.as_tensor(dataset.far, dtype=torch.float32)[views]
+    t_start, t_end = ray_cube_bounds(origins, dirs, near, far)
     jitter = torch.rand(BATCH_RAYS, BATCH_SAMPLES - 1, generator=generator)
     t, _, mask = ray_samples(static.occupancy, static.config, origins, dirs, t_start, t_end, BATCH_SAMPLES, jitter)
     points = origins[:, None, :] + t[..., None] * dirs[:, None, :]
@@ -116,8 +114,8 @@ def main(argv: list[str] | None = None) -> None:
             exp_avg, exp_avg_sq = state[id(t)]
             module.adam_step_touched(t, buffer, touched, exp_avg, exp_avg_sq, 0.9, 0.99, 1e-9, 1.0, 1e-15)
 
-    rows.append(("Adam on the touched chunks", _ms(adam, args.repeats,
-                                                          between=lambda: sink.add(points, grad, dense_d, planes_d))))
+    rows.append(("Adam on the touched chunks",
+                 _ms(adam, args.repeats, between=lambda: sink.add(points, grad, dense_d, planes_d))))
 
     view = int(dataset.indices("train")[0])
     origins, dirs = view_rays(dataset.c2w[view], dataset.intrinsics[view], dataset.width, dataset.height)
@@ -127,7 +125,7 @@ def main(argv: list[str] | None = None) -> None:
     jitter = torch.rand(n_rays, BATCH_SAMPLES - 1, generator=generator)
     rows.append((f"render sampler, {n_rays} rays x {BATCH_SAMPLES} samples",
                  _ms(lambda: ray_samples(static.occupancy, static.config, origins, dirs, t_start, t_end,
-                                                BATCH_SAMPLES, jitter), args.repeats)))
+                                         BATCH_SAMPLES, jitter), args.repeats)))
     for label, ms in rows:
         print(f"  {label:<60s} {ms:8.2f} ms")
     print(f"the pair look-ups wait on memory for {100 * waiting:.0f}% of their time at a batch's points "
