@@ -168,8 +168,9 @@ class EditStage(TorchNumerics, Stage):
     # independent training and renders (see fit version 6); 6: f_D at the baseline's learning rate
     # (dual_lr_scale off), emulator v2 (mode lock-in, background cast; emulator_* params), the proxy's
     # captions from the edit's specification and the training views only; 7: samples_per_ray (32 at the
-    # CPU preset: training rays and view updates), the occupancy refresh in the fused kernel (fit 7).
-    version = "7"
+    # CPU preset: training rays and view updates), the occupancy refresh in the fused kernel (fit 7);
+    # 8: the kernels flush subnormal floats to zero (fit 8).
+    version = "8"
     Params = EditParams
     upstream = ("dataset", "fit")
     # One thread: edits run side by side (dualnerf run's default jobs); with --jobs 1 an edit gets every core.

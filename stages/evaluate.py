@@ -68,8 +68,8 @@ class EvaluateStage(TorchNumerics, Stage):
     # renders, metrics and video; 6: the proxy's target caption from the edit's specification (caption
     # images of the training views) instead of the ground-truth edit, metrics.json's `sees_ground_truth`
     # list, gt_mode_share (which mode the edit ended in), and the fixed views rendered with their own
-    # near/far (were the scene-wide range)
-    version = "6"
+    # near/far (were the scene-wide range); 7: renders on kernels that flush subnormals (fit 8)
+    version = "7"
     Params = EvaluateParams
     # "original": the evaluate result of the unedited scene (same dataset and fit). Edited rows reuse its
     # f_S renders instead of rendering the same camera path again (the workflow passes it).

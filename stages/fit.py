@@ -97,8 +97,10 @@ class FitStage(TorchNumerics, Stage):
     # composite in the packed kernel path (dualnerf.rendering._render_packed: float32 rounding differs);
     # 6: the MLPs train on the kernels (thread-count independent sums), renders' exp and sums as the
     # portable path's, torch on one thread; 7: the occupancy refresh's density MLP in the fused inference
-    # kernel (kernels.field_inference, density_only) instead of torch's matmul: float32 rounding differs
-    version = "7"
+    # kernel (kernels.field_inference, density_only) instead of torch's matmul: float32 rounding differs;
+    # 8: the fused kernels flush subnormal floats to zero (dualnerf/kernels/kernels.h, "Denormals": a
+    # training step's tiny gradients cost microcode assists), so values below 1.2e-38 become zeros
+    version = "8"
     Params = FitParams
     upstream = ("dataset",)
     resources = Resources(cpus=2, gpus=0, memory_gb=3)

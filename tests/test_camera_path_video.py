@@ -78,6 +78,21 @@ def test_rgb_to_yuv420p_matches_the_bt601_limited_range_formula():
     assert white == [235] * 4 + [128, 128] and black == [16] * 4 + [128, 128]
 
 
+def first_difference(a: bytes, b: bytes) -> str:
+    """Where two mp4 files first differ: the byte offset, the top-level box there and both files' sizes
+    (seen once on CI, never reproduced here: the message is what the next occurrence has to tell)."""
+    at = next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), min(len(a), len(b)))
+    box, start = b"?", 0
+    while start + 8 <= len(a):
+        size, kind = int.from_bytes(a[start:start + 4], "big"), a[start + 4:start + 8]
+        if size < 8 or start + size > at:
+            box = kind
+            break
+        start += size
+    return (f"{len(a)} vs {len(b)} bytes, first difference at byte {at} in box {box!r} (starts at {start}): "
+            f"{a[at:at + 16].hex()} vs {b[at:at + 16].hex()}")
+
+
 def test_small_clips_encode_to_identical_bytes_every_time(tmp_path):
     # Four 32x24 camera-path frames of the tiny scene (an evaluate result's frames/edited/, stacked): with
     # FFmpeg's own RGB -> YUV conversion, 20 writes of them gave 2-3 different files.
@@ -86,5 +101,5 @@ def test_small_clips_encode_to_identical_bytes_every_time(tmp_path):
     strip = cv2.imread(str(Path(__file__).parent / "data" / "tiny_path_frames.png"))[..., ::-1]
     frames = [np.ascontiguousarray(f) for f in np.split(strip, 4, axis=0)]
     written = {write_mp4(frames, tmp_path / f"{i}.mp4").read_bytes() for i in range(20)}
-    assert len(written) == 1
+    assert len(written) == 1, first_difference(*sorted(written)[:2])
     assert probe_video(tmp_path / "0.mp4")["frames"] == 4

@@ -179,3 +179,56 @@ def test_adam_steps(monkeypatch):
         return state[0], state[2], state[3]
 
     same_everywhere(step, monkeypatch)
+
+
+def subnormal_count(tensors) -> int:
+    tiny = torch.finfo(torch.float32).tiny
+    return sum(int(((t != 0) & (t.abs() < tiny)).sum()) for t in tensors)
+
+
+def test_kernels_flush_subnormals_on_every_thread_and_leave_the_caller_alone(monkeypatch):
+    # kernels.h, "Denormals": outputs are never subnormal (FTZ), subnormal inputs read as zero (DAZ), on
+    # every thread count and path; the calling thread's own mode is untouched.
+    model = field(2)
+    m = 2 * 1024 + 77
+    features = torch.randn(m, model.mlp_layers()[0].in_features, generator=torch.Generator().manual_seed(4),
+                           requires_grad=True)
+    sh = model.direction_features(torch.nn.functional.normalize(torch.randn(m, 3, generator=torch.Generator().manual_seed(5)), dim=-1))
+    # Output gradients of 1e-37 (a training step's, far behind a surface): the layers' products of them
+    # fall below float32's smallest normal number.
+    weights = torch.randn(m, 4, generator=torch.Generator().manual_seed(7)) * 1e-37
+
+    def step():
+        model.zero_grad()
+        features.grad = None
+        h_sigma, h_color = kernels.train_heads(features, sh, model.mlp_layers())
+        ((h_sigma * weights[:, 0]).sum() + (h_color * weights[:, 1:]).sum()).backward()
+        return features.grad, [p.grad for p in model.parameters() if p.grad is not None]
+
+    grads = flat(same_everywhere(step, monkeypatch))
+    assert subnormal_count(grads) == 0
+    # The torch reference (not flushed) has them: the test exercises the flush.
+    model.zero_grad()
+    features.grad = None
+    ref_sigma, ref_color = model._heads_block(features, sh)
+    ((ref_sigma * weights[:, 0]).sum() + (ref_color * weights[:, 1:]).sum()).backward()
+    reference = [features.grad, *[p.grad for p in model.parameters() if p.grad is not None]]
+    assert subnormal_count(reference) > 100
+    # Nonzero reference entries far above the subnormal range agree (the flush only drops what is tiny).
+    for got, want in zip(grads, reference):
+        big = want.abs() > 1e-30
+        torch.testing.assert_close(got[big], want[big], rtol=1e-3, atol=0.0)
+
+    # DAZ: a table entry holding a subnormal value looks up as a zero.
+    dense, planes = model.grid_tables()
+    x = points(1031)
+    tiny = [t.clone() for t in planes]
+    every_seventh = torch.arange(tiny[0].numel()).reshape(tiny[0].shape) % 7 == 0
+    tiny[0].masked_fill_(every_seventh, 1e-39)
+    zeroed = [t.clone() for t in tiny]
+    zeroed[0].masked_fill_(every_seventh, 0.0)
+    module = kernels.grid_kernel()
+    looked_up = same_everywhere(lambda: module.encode_forward(x, list(dense), tiny, kernels.vector_path()), monkeypatch)
+    assert torch.equal(looked_up[0], module.encode_forward(x, list(dense), zeroed, kernels.vector_path()))
+    # The caller's thread still computes with subnormals.
+    assert float(torch.tensor(1e-38) / 10.0) != 0.0
