@@ -266,7 +266,10 @@ def main(argv: list[str] | None = None) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     parser = argparse.ArgumentParser(prog="python -m benchmarks.profile_edit")
     add_fitted_field_arguments(parser, threads=2)
-    parser.add_argument("--iterations", type=int, default=100, help="editing iterations per variant")
+    parser.add_argument("--iterations", type=int, default=100,
+                        help="editing iterations per variant: the first N of an edit (the edit stage runs 2000; "
+                             "early iterations differ from the average, e.g. in how many gradients are "
+                             "subnormal, so quote a whole edit's figure with 2000)")
     parser.add_argument("--compare", default=BEFORE_ISSUE_30,
                         help="after this profile, run the same one as this commit has it (its own defaults, the "
                              "same f_S) and print both side by side; 'none': skip (default: the commit before "
