@@ -177,6 +177,27 @@ def test_occupancy_refresh_evaluates_block_by_block_and_stores_each_cells_own_de
     assert torch.equal(grid.density, density(points).reshape(resolution, resolution, resolution))
 
 
+def test_occupancy_dilation_is_the_3x3x3_neighbourhood_as_max_pool3d_computes_it():
+    import torch.nn.functional as F
+
+    from dualnerf.occupancy import dilate
+
+    # One cell: its 3x3x3 block (27 cells), cut at the grid's faces (a corner: 8 cells; an edge: 12).
+    for at, expected in (((4, 4, 4), 27), ((0, 0, 0), 8), ((7, 3, 0), 12)):
+        mask = torch.zeros(8, 8, 8, dtype=torch.bool)
+        mask[at] = True
+        grown = dilate(mask)
+        assert int(grown.sum()) == expected
+        cells = torch.nonzero(grown)
+        assert int((cells - torch.tensor(at)).abs().max()) == 1
+    # Random masks of several densities and an odd, non-cubic shape: the same cells as the float max pool.
+    g = torch.Generator().manual_seed(3)
+    for share in (0.01, 0.1, 0.5):
+        mask = torch.rand(9, 12, 7, generator=g) < share
+        reference = F.max_pool3d(mask.float()[None, None], kernel_size=3, stride=1, padding=1)[0, 0] > 0
+        assert torch.equal(dilate(mask), reference)
+
+
 def test_render_view_chunking_does_not_change_the_image():
     field = RadianceField(FieldConfig(grid_resolutions=(8, 16), samples_per_ray=32),
                           torch.Generator().manual_seed(3))
