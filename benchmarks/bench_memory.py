@@ -9,7 +9,9 @@ edits run, medians of --repeats:
   (the edit stage's CPU preset: random training pixels' rays, their occupied samples), at as many points
   spread uniformly over the scene cube, and at points squeezed into a few grid cells. The last run has
   the same instructions as the others but finds every corner in the L1 cache: the difference is time
-  spent waiting for table rows (the fine tables, ~50 MB per field, do not fit the caches);
+  spent waiting for table rows (the fine tables, ~50 MB per field, do not fit the caches). Then the pair
+  kernel reading f_D's tables for both fields (the second field's rows then cost nothing: the first
+  row minus this one is what f_D's own rows cost) and one field's look-ups alone;
 - the look-ups' backward into the persistent gradient buffers (kernels.TableGradients) at the batch's
   points, and the Adam update of the chunks it touched (what a training step runs on f_D's tables);
 - the render sampler (proposal + interval placement + occupancy) for one view update's 256x192 rays.
@@ -99,6 +101,14 @@ def main(argv: list[str] | None = None) -> None:
     for label, x in (("batch points", points), ("uniform in the cube", uniform), ("in a few cells", squeezed)):
         rows.append((f"pair look-ups, {label}", _ms(pair_forward(x), args.repeats)))
     waiting = 1.0 - rows[2][1] / rows[0][1]
+    # The same instructions with f_D's tables as the second field too: its corners then come from lines the
+    # first field's gathers just loaded, so the difference to the first row is what f_D's own table rows
+    # cost, the most that storing both fields' corners in one line (as renders do) could save in training.
+    rows.append(("pair look-ups, batch points, f_D's tables for both fields",
+                 _ms(lambda: module.encode_forward_pair(points, dense_d, planes_d, dense_d, planes_d, vector),
+                     args.repeats)))
+    rows.append(("one field's look-ups (f_D), batch points",
+                 _ms(lambda: module.encode_forward(points, dense_d, planes_d, vector), args.repeats)))
 
     tables = [*dense_d, *planes_d]
     sink = kernels.TableGradients(tables)
