@@ -114,5 +114,5 @@ def provenance() -> dict:
     vector = module is not None and kernels.vector_path() and module.vector_path_available()
     return {"cpu_model": model, "cpu_vendor": vendor, "cpu_flags": selecting, "torch_threads": torch.get_num_threads(),
             "kernel_threads": kernels.kernel_threads(), "kernel_build": kernels.build_name(),
-            "kernel_path": "avx512" if vector else "portable",
+            "kernel_path": "avx512" if vector else ("avx2" if kernels.isa_flags() else "portable"),
             "environment_overrides": overrides}

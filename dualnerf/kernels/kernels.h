@@ -26,7 +26,10 @@
 #endif
 
 // DUALNERF_NO_AVX512 (DUALNERF_KERNEL_BUILD=portable): a build with the portable code only, as on a
-// compiler or CPU without AVX-512; it must give the same bits (tests/test_kernel_threads.py).
+// compiler or CPU without AVX-512; it must give the same bits (tests/test_kernel_threads.py). Where the
+// building CPU has AVX2 and FMA, the whole extension is compiled with -mavx2 -mfma (__init__.py isa_flags)
+// and the MLP layers' portable code runs as AVX2 tiles (mlp.h, mlp_train.cpp), the same chains again
+// (tests/test_kernel_build.py compares it with the generic build).
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(DUALNERF_NO_AVX512)
 #include <cpuid.h>
 #include <immintrin.h>

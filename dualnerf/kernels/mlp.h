@@ -7,6 +7,10 @@
 
 #include "kernels.h"
 
+#if defined(__AVX2__) && defined(__FMA__)
+#include <immintrin.h>
+#endif
+
 namespace dualnerf {
 
 struct Layer {
@@ -15,9 +19,63 @@ struct Layer {
   int in, out, out_pad;
 };
 
-// Rows [0, rows) of out = relu?(in @ wt + b), portable code.
+#if defined(__AVX2__) && defined(__FMA__)
+// RB rows x NV 8-float vectors of outputs in registers, for builds with the AVX2 flags (kernels/__init__.py
+// isa_flags): the same chains as the scalar and AVX-512 code (bias first, then k in order, one rounding per
+// fused multiply-add), so the same bits.
+template <int NV, int RB>
+inline void layer_tile_avx2(const Layer& l, const float* in, int64_t ld_in, float* out, int64_t ld_out, bool relu) {
+  __m256 acc[RB][NV];
+  for (int v = 0; v < NV; ++v) {
+    const __m256 bias = _mm256_loadu_ps(l.b + 8 * v);
+    for (int r = 0; r < RB; ++r) acc[r][v] = bias;
+  }
+  for (int k = 0; k < l.in; ++k) {
+    __m256 w[NV];
+    for (int v = 0; v < NV; ++v) w[v] = _mm256_loadu_ps(l.wt + k * l.out_pad + 8 * v);
+    for (int r = 0; r < RB; ++r) {
+      const __m256 x = _mm256_broadcast_ss(in + r * ld_in + k);
+      for (int v = 0; v < NV; ++v) acc[r][v] = _mm256_fmadd_ps(x, w[v], acc[r][v]);
+    }
+  }
+  const __m256 zero = _mm256_setzero_ps();
+  for (int r = 0; r < RB; ++r) {
+    float* y = out + r * ld_out;
+    for (int v = 0; v < NV; ++v) {
+      const __m256 value = relu ? _mm256_max_ps(acc[r][v], zero) : acc[r][v];
+      const int left = l.out - 8 * v;
+      if (left >= 8) {
+        _mm256_storeu_ps(y + 8 * v, value);
+      } else if (left > 0) {
+        alignas(32) float lanes[8];
+        _mm256_store_ps(lanes, value);
+        for (int j = 0; j < left; ++j) y[8 * v + j] = lanes[j];
+      }
+    }
+  }
+}
+
+template <int NV>
+void layer_rows_avx2(const Layer& l, const float* in, int64_t ld_in, int64_t rows, float* out, int64_t ld_out,
+                     bool relu) {
+  constexpr int RB = NV >= 8 ? 1 : 8 / NV;    // <= 8 accumulators: AVX2 has 16 registers
+  int64_t r = 0;
+  for (; r + RB <= rows; r += RB) layer_tile_avx2<NV, RB>(l, in + r * ld_in, ld_in, out + r * ld_out, ld_out, relu);
+  for (; r < rows; ++r) layer_tile_avx2<NV, 1>(l, in + r * ld_in, ld_in, out + r * ld_out, ld_out, relu);
+}
+#endif
+
+// Rows [0, rows) of out = relu?(in @ wt + b), portable code (any padded width).
 inline void layer_rows_portable(const Layer& l, const float* in, int64_t ld_in, int64_t rows, float* out, int64_t ld_out,
                          bool relu) {
+#if defined(__AVX2__) && defined(__FMA__)
+  switch (l.out_pad / 8) {
+    case 2: return layer_rows_avx2<2>(l, in, ld_in, rows, out, ld_out, relu);
+    case 4: return layer_rows_avx2<4>(l, in, ld_in, rows, out, ld_out, relu);
+    case 8: return layer_rows_avx2<8>(l, in, ld_in, rows, out, ld_out, relu);
+    case 16: return layer_rows_avx2<16>(l, in, ld_in, rows, out, ld_out, relu);
+  }
+#endif
   for (int64_t r = 0; r < rows; ++r) {
     const float* x = in + r * ld_in;
     float* y = out + r * ld_out;

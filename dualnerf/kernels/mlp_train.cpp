@@ -73,6 +73,42 @@ void accumulate_portable(float* g, float* bias, int in, int out_pad, const float
   }
 }
 
+#if defined(__AVX2__) && defined(__FMA__)
+// accumulate_portable for builds with the AVX2 flags (kernels/__init__.py isa_flags): NV 8-float vectors
+// of outputs and KB inputs in registers, per entry the same chain in the same row order, so the same bits.
+template <int NV, int KB>
+inline void accumulate_tile_avx2(float* g, int out_pad, const float* x, int64_t ld_x, const float* dy, int64_t ld_dy,
+                                 int64_t rows) {
+  __m256 acc[KB][NV];
+  for (int i = 0; i < KB; ++i)
+    for (int v = 0; v < NV; ++v) acc[i][v] = _mm256_loadu_ps(g + i * out_pad + 8 * v);
+  for (int64_t r = 0; r < rows; ++r) {
+    __m256 d[NV];
+    for (int v = 0; v < NV; ++v) d[v] = _mm256_loadu_ps(dy + r * ld_dy + 8 * v);
+    for (int i = 0; i < KB; ++i) {
+      const __m256 xs = _mm256_broadcast_ss(x + r * ld_x + i);
+      for (int v = 0; v < NV; ++v) acc[i][v] = _mm256_fmadd_ps(xs, d[v], acc[i][v]);
+    }
+  }
+  for (int i = 0; i < KB; ++i)
+    for (int v = 0; v < NV; ++v) _mm256_storeu_ps(g + i * out_pad + 8 * v, acc[i][v]);
+}
+
+template <int NV>
+void accumulate_avx2(float* g, float* bias, int in, int out_pad, const float* x, int64_t ld_x, const float* dy,
+                     int64_t ld_dy, int64_t rows) {
+  constexpr int KB = NV >= 8 ? 1 : 8 / NV;     // <= 8 accumulators beside the dy vectors (16 registers)
+  int k = 0;
+  for (; k + KB <= in; k += KB) accumulate_tile_avx2<NV, KB>(g + k * out_pad, out_pad, x + k, ld_x, dy, ld_dy, rows);
+  for (; k < in; ++k) accumulate_tile_avx2<NV, 1>(g + k * out_pad, out_pad, x + k, ld_x, dy, ld_dy, rows);
+  for (int v = 0; v < NV; ++v) {
+    __m256 acc = _mm256_loadu_ps(bias + 8 * v);
+    for (int64_t r = 0; r < rows; ++r) acc = _mm256_add_ps(acc, _mm256_loadu_ps(dy + r * ld_dy + 8 * v));
+    _mm256_storeu_ps(bias + 8 * v, acc);
+  }
+}
+#endif
+
 #ifdef DUALNERF_HAVE_AVX512
 // accumulate_portable with NV vectors of outputs and KB inputs at a time in registers (each dy vector is
 // loaded once per row and used for KB inputs); per entry the same chain, in the same row order.
@@ -122,6 +158,14 @@ void accumulate(float* g, float* bias, int in, int out_pad, const float* x, int6
     }
   }
 #endif
+#if defined(__AVX2__) && defined(__FMA__)
+  switch (out_pad / 8) {
+    case 2: return accumulate_avx2<2>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
+    case 4: return accumulate_avx2<4>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
+    case 8: return accumulate_avx2<8>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
+    case 16: return accumulate_avx2<16>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
+  }
+#endif
   accumulate_portable(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
 }
 
@@ -146,6 +190,53 @@ void accumulate_by_inputs_portable(float* gt, float* bias, int in, int in_pad, i
 }
 
 constexpr int kMaxByInputs = 16;    // layers with at most this many outputs accumulate by inputs
+
+#if defined(__AVX2__) && defined(__FMA__)
+// accumulate_by_inputs_portable for builds with the AVX2 flags: JB outputs x NV 8-float input vectors of gt
+// in registers (inputs past `in` read as zeros, as the AVX-512 code's masked loads); per entry the same
+// chain over the rows, so the same bits.
+template <int NV, int JB>
+inline void accumulate_by_inputs_tile_avx2(float* gt, int in_pad, const __m256i* lanes, bool full, const float* x,
+                                           int64_t ld_x, const float* dy, int64_t ld_dy, int64_t rows) {
+  __m256 acc[JB][NV];
+  for (int j = 0; j < JB; ++j)
+    for (int v = 0; v < NV; ++v) acc[j][v] = _mm256_loadu_ps(gt + j * in_pad + 8 * v);
+  for (int64_t r = 0; r < rows; ++r) {
+    __m256 xs[NV];
+    for (int v = 0; v < NV; ++v)
+      xs[v] = full ? _mm256_loadu_ps(x + r * ld_x + 8 * v) : _mm256_maskload_ps(x + r * ld_x + 8 * v, lanes[v]);
+    for (int j = 0; j < JB; ++j) {
+      const __m256 d = _mm256_broadcast_ss(dy + r * ld_dy + j);
+      for (int v = 0; v < NV; ++v) acc[j][v] = _mm256_fmadd_ps(xs[v], d, acc[j][v]);
+    }
+  }
+  for (int j = 0; j < JB; ++j)
+    for (int v = 0; v < NV; ++v) _mm256_storeu_ps(gt + j * in_pad + 8 * v, acc[j][v]);
+}
+
+template <int NV>
+void accumulate_by_inputs_avx2(float* gt, float* bias, int in, int in_pad, int out, int out_pad, const float* x,
+                               int64_t ld_x, const float* dy, int64_t ld_dy, int64_t rows) {
+  constexpr int JB = NV >= 8 ? 1 : 8 / NV;
+  __m256i lanes[NV];
+  for (int v = 0; v < NV; ++v) {
+    alignas(32) int32_t m[8];
+    for (int i = 0; i < 8; ++i) m[i] = 8 * v + i < in ? -1 : 0;
+    lanes[v] = _mm256_load_si256(reinterpret_cast<const __m256i*>(m));
+  }
+  const bool full = in == in_pad;
+  int j = 0;
+  for (; j + JB <= out; j += JB)
+    accumulate_by_inputs_tile_avx2<NV, JB>(gt + j * in_pad, in_pad, lanes, full, x, ld_x, dy + j, ld_dy, rows);
+  for (; j < out; ++j)
+    accumulate_by_inputs_tile_avx2<NV, 1>(gt + j * in_pad, in_pad, lanes, full, x, ld_x, dy + j, ld_dy, rows);
+  for (int v = 0; v < out_pad / 8; ++v) {     // lane j: the portable loop's additions in its order
+    __m256 acc = _mm256_loadu_ps(bias + 8 * v);
+    for (int64_t r = 0; r < rows; ++r) acc = _mm256_add_ps(acc, _mm256_loadu_ps(dy + r * ld_dy + 8 * v));
+    _mm256_storeu_ps(bias + 8 * v, acc);
+  }
+}
+#endif
 
 #ifdef DUALNERF_HAVE_AVX512
 // JB outputs x NV input vectors of gt in registers; per row NV input loads, JB broadcasts, JB * NV FMAs.
@@ -218,6 +309,13 @@ void accumulate_by_inputs(float* gt, float* bias, int in, int in_pad, int out, i
       case 2: return accumulate_by_inputs_avx512<2>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
       case 4: return accumulate_by_inputs_avx512<4>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
     }
+  }
+#endif
+#if defined(__AVX2__) && defined(__FMA__)
+  switch (in_pad / 8) {
+    case 2: return accumulate_by_inputs_avx2<2>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
+    case 4: return accumulate_by_inputs_avx2<4>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
+    case 8: return accumulate_by_inputs_avx2<8>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
   }
 #endif
   accumulate_by_inputs_portable(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
