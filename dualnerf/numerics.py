@@ -110,9 +110,7 @@ def provenance() -> dict:
                                                  "amx_bf16", "amx_tile", "f16c"})
     overrides = {k: v for k, v in os.environ.items()
                  if k.startswith(("DUALNERF_KERNEL", "ATEN_CPU_CAPABILITY", "MKL_", "NPY_DISABLE"))}
-    module = kernels.grid_kernel()
-    vector = module is not None and kernels.vector_path() and module.vector_path_available()
     return {"cpu_model": model, "cpu_vendor": vendor, "cpu_flags": selecting, "torch_threads": torch.get_num_threads(),
             "kernel_threads": kernels.kernel_threads(), "kernel_build": kernels.build_name(),
-            "kernel_path": "avx512" if vector else ("avx2" if kernels.isa_flags() else "portable"),
+            "kernel_path": kernels.vector_code() if kernels.vector_path() else "none",
             "environment_overrides": overrides}

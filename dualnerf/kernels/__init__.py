@@ -13,7 +13,9 @@ API:
     mlp_inference(features (M,F), sh (M,S), layers) -> (h_sigma, h_color)   the MLP part alone, no autograd
     mlp_precision(precision)            context: field_inference's MLPs in "fp32" (default) or "bf16"
     bf16_path_name() -> str             "amx-tiles" | "emulated": how bf16 MLPs run on this CPU (manifests)
-    vector_path() -> bool               the AVX-512 code runs where the CPU has it (DUALNERF_KERNEL_VECTOR)
+    vector_path() -> bool               the vector code runs (DUALNERF_KERNEL_VECTOR; =0: scalar, for tests)
+    vector_code() -> str                "avx512" | "avx2" | "none": which vector code runs here
+    isa_flags() -> list                 -mavx2 -mfma where the building CPU has them (in the build's name)
     grid_kernel().occupied_samples / composite_rays / ray_samples: a render's packing, compositing and
         sampler (called by dualnerf.rendering, whose torch code is their reference)
     can_infer(x, features) -> bool      field_inference takes these points (2 features per table)
@@ -464,9 +466,18 @@ def _refuse_autograd(name: str, *tensors: torch.Tensor) -> None:
 
 
 def vector_path() -> bool:
-    """The AVX-512 look-up and layer code where the CPU has it (DUALNERF_KERNEL_VECTOR=0: the portable code,
-    for tests; both give the same bits)."""
+    """The AVX-512 look-up and layer code where the CPU has it, else the AVX2 layer tiles where the build has
+    them (DUALNERF_KERNEL_VECTOR=0: the scalar code, for tests; all give the same bits)."""
     return os.environ.get("DUALNERF_KERNEL_VECTOR", "1") != "0"
+
+
+def vector_code() -> str:
+    """Which vector code vector_path() runs on this CPU and build: "avx512", "avx2" (the MLP layers only;
+    look-ups, sampler and compositing run their scalar code) or "none"."""
+    module = grid_kernel()
+    if module is None:
+        return "none"
+    return "avx512" if module.vector_path_available() else ("avx2" if isa_flags() else "none")
 
 
 def can_infer(x: torch.Tensor, features: int) -> bool:

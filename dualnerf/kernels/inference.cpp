@@ -367,11 +367,11 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
       float* col = density_only ? nullptr : cp + 3 * begin;
       const float* sh_rows = index || density_only ? shp : shp + begin * n_sh;
       const int64_t* sh_index_rows = index ? index + begin : nullptr;
-      field_mlps(mlps_a, feat_a.data(), n_features, sh_rows, sh_index_rows, rows, scratch, sig, col, vec,
+      field_mlps(mlps_a, feat_a.data(), n_features, sh_rows, sh_index_rows, rows, scratch, sig, col, vector_path,
                  density_only);
       if (!dual) continue;
       field_mlps(mlps_b, feat_b.data(), n_features, sh_rows, sh_index_rows, rows, scratch, sigma_b.data(),
-                 color_b.data(), vec, density_only);
+                 color_b.data(), vector_path, density_only);
       // Eqs. 4-5 in the order of dualnerf.dual_field._fuse: (1 - w) * h_S + w * h_D.
       for (int64_t r = 0; r < rows; ++r) sig[r] = keep_d * sig[r] + wd * sigma_b[r];
       if (density_only) continue;
@@ -446,7 +446,7 @@ std::vector<torch::Tensor> mlp_inference(torch::Tensor features, torch::Tensor s
   auto h_color = torch::empty({m, 3}, features.options());
   const float *fp = features.data_ptr<float>(), *shp = sh.data_ptr<float>();
   float *sp = h_sigma.data_ptr<float>(), *cp = h_color.data_ptr<float>();
-  const bool vec = vector_path && avx512_available();
+  const bool vec = vector_path;    // the layer code picks AVX-512, AVX2 or scalar (mlp.h)
   parallel_for(0, (m + kInferBlock - 1) / kInferBlock, 1, [&](int64_t block_begin, int64_t block_end) {
     Scratch scratch(mlps);
     for (int64_t blk = block_begin; blk < block_end; ++blk) {

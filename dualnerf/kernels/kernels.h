@@ -256,7 +256,12 @@ inline float exp_scalar(float x) {
   r = std::fma(-n, 1.428606765330187e-06f, r);
   float p = 1.0f / 5040.0f;
   for (const float k : {1.0f / 720.0f, 1.0f / 120.0f, 1.0f / 24.0f, 1.0f / 6.0f, 0.5f, 1.0f, 1.0f}) p = std::fma(p, r, k);
-  return std::ldexp(p, static_cast<int>(n));
+  // p * 2^n, as std::ldexp (a libm call that took ~3% of a CPU without AVX-512's test suite): n is in
+  // [-126, 127] and p in [1.4, 1.42) at n = -126, so the product is a normal float and exact.
+  const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;
+  float scale;
+  std::memcpy(&scale, &bits, sizeof scale);
+  return p * scale;
 }
 
 // Every table's features for points [begin, end) into rows (i - row0) of out_a (and out_b: the second

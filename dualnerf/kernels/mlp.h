@@ -65,17 +65,9 @@ void layer_rows_avx2(const Layer& l, const float* in, int64_t ld_in, int64_t row
 }
 #endif
 
-// Rows [0, rows) of out = relu?(in @ wt + b), portable code (any padded width).
+// Rows [0, rows) of out = relu?(in @ wt + b), scalar code.
 inline void layer_rows_portable(const Layer& l, const float* in, int64_t ld_in, int64_t rows, float* out, int64_t ld_out,
                          bool relu) {
-#if defined(__AVX2__) && defined(__FMA__)
-  switch (l.out_pad / 8) {
-    case 2: return layer_rows_avx2<2>(l, in, ld_in, rows, out, ld_out, relu);
-    case 4: return layer_rows_avx2<4>(l, in, ld_in, rows, out, ld_out, relu);
-    case 8: return layer_rows_avx2<8>(l, in, ld_in, rows, out, ld_out, relu);
-    case 16: return layer_rows_avx2<16>(l, in, ld_in, rows, out, ld_out, relu);
-  }
-#endif
   for (int64_t r = 0; r < rows; ++r) {
     const float* x = in + r * ld_in;
     float* y = out + r * ld_out;
@@ -128,15 +120,27 @@ __attribute__((target("avx512f"))) void layer_rows_avx512(const Layer& l, const 
 
 #endif
 
+// vector_path (the caller's DUALNERF_KERNEL_VECTOR): the AVX-512 tiles where the CPU has them, else the AVX2
+// tiles where the build has them (kernels/__init__.py isa_flags); off: the scalar code. All the same bits.
 inline void layer_rows(const Layer& l, const float* in, int64_t ld_in, int64_t rows, float* out, int64_t ld_out, bool relu,
                 bool vector_path) {
 #ifdef DUALNERF_HAVE_AVX512
-  if (vector_path) {
+  if (vector_path && avx512_available()) {
     switch (l.out_pad / kLanes) {
       case 1: return layer_rows_avx512<1>(l, in, ld_in, rows, out, ld_out, relu);
       case 2: return layer_rows_avx512<2>(l, in, ld_in, rows, out, ld_out, relu);
       case 4: return layer_rows_avx512<4>(l, in, ld_in, rows, out, ld_out, relu);
       case 8: return layer_rows_avx512<8>(l, in, ld_in, rows, out, ld_out, relu);
+    }
+  }
+#endif
+#if defined(__AVX2__) && defined(__FMA__)
+  if (vector_path) {
+    switch (l.out_pad / 8) {
+      case 2: return layer_rows_avx2<2>(l, in, ld_in, rows, out, ld_out, relu);
+      case 4: return layer_rows_avx2<4>(l, in, ld_in, rows, out, ld_out, relu);
+      case 8: return layer_rows_avx2<8>(l, in, ld_in, rows, out, ld_out, relu);
+      case 16: return layer_rows_avx2<16>(l, in, ld_in, rows, out, ld_out, relu);
     }
   }
 #endif

@@ -149,7 +149,7 @@ __attribute__((target("avx512f"))) void accumulate_avx512(float* g, float* bias,
 void accumulate(float* g, float* bias, int in, int out_pad, const float* x, int64_t ld_x, const float* dy,
                 int64_t ld_dy, int64_t rows, bool vector_path) {
 #ifdef DUALNERF_HAVE_AVX512
-  if (vector_path) {
+  if (vector_path && avx512_available()) {
     switch (out_pad / kLanes) {
       case 1: return accumulate_avx512<1>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
       case 2: return accumulate_avx512<2>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
@@ -159,7 +159,7 @@ void accumulate(float* g, float* bias, int in, int out_pad, const float* x, int6
   }
 #endif
 #if defined(__AVX2__) && defined(__FMA__)
-  switch (out_pad / 8) {
+  if (vector_path) switch (out_pad / 8) {
     case 2: return accumulate_avx2<2>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
     case 4: return accumulate_avx2<4>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
     case 8: return accumulate_avx2<8>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
@@ -303,7 +303,7 @@ __attribute__((target("avx512f"))) void accumulate_by_inputs_avx512(float* gt, f
 void accumulate_by_inputs(float* gt, float* bias, int in, int in_pad, int out, int out_pad, const float* x,
                           int64_t ld_x, const float* dy, int64_t ld_dy, int64_t rows, bool vector_path) {
 #ifdef DUALNERF_HAVE_AVX512
-  if (vector_path) {
+  if (vector_path && avx512_available()) {
     switch (in_pad / kLanes) {
       case 1: return accumulate_by_inputs_avx512<1>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
       case 2: return accumulate_by_inputs_avx512<2>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
@@ -312,7 +312,7 @@ void accumulate_by_inputs(float* gt, float* bias, int in, int in_pad, int out, i
   }
 #endif
 #if defined(__AVX2__) && defined(__FMA__)
-  switch (in_pad / 8) {
+  if (vector_path) switch (in_pad / 8) {
     case 2: return accumulate_by_inputs_avx2<2>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
     case 4: return accumulate_by_inputs_avx2<4>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
     case 8: return accumulate_by_inputs_avx2<8>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
@@ -379,7 +379,7 @@ std::vector<torch::Tensor> mlp_train_forward(torch::Tensor features, torch::Tens
   const int64_t* ip = index.defined() ? index.data_ptr<int64_t>() : nullptr;
   float *sp = h_sigma.data_ptr<float>(), *cp = h_color.data_ptr<float>(), *h1 = hidden_density.data_ptr<float>(),
         *ci = color_in.data_ptr<float>(), *h2 = hidden_color.data_ptr<float>();
-  const bool vec = vector_path && avx512_available();
+  const bool vec = vector_path;    // the layer code picks AVX-512, AVX2 or scalar (mlp.h)
   parallel_for(0, (m + kTrainBlock - 1) / kTrainBlock, 1, [&](int64_t block_begin, int64_t block_end) {
     std::vector<float> density_out(kTrainBlock * l[1].out_pad), rgb(kTrainBlock * l[3].out_pad);
     for (int64_t blk = block_begin; blk < block_end; ++blk) {
@@ -453,7 +453,7 @@ std::vector<torch::Tensor> mlp_train_backward(torch::Tensor grad_sigma, torch::T
               *fp = features.data_ptr<float>(), *h1 = hidden_density.data_ptr<float>(),
               *ci = color_in.data_ptr<float>(), *h2 = hidden_color.data_ptr<float>();
   float *pp = partial.data_ptr<float>(), *gf = grad_features.data_ptr<float>();
-  const bool vec = vector_path && avx512_available();
+  const bool vec = vector_path;    // the layer code picks AVX-512, AVX2 or scalar (mlp.h)
   // Layer i's weight and bias gradient sums in group g += its inputs x (rows) times its output gradients dy.
   auto accumulate_layer = [&](int i, float* g, const float* x, int64_t ld_x, const float* dy, int64_t ld_dy,
                               int64_t rows) {
