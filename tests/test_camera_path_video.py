@@ -120,7 +120,7 @@ class FlakyEncoder:
 
 
 def test_a_video_is_kept_only_when_two_encodes_agree(tmp_path, monkeypatch, caplog):
-    import dualnerf.video as video
+    from dualnerf import video
 
     frames = [np.zeros((16, 16, 3), np.uint8)] * 2
     agreeing = FlakyEncoder([b"A", b"A"])
