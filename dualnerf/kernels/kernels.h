@@ -38,6 +38,13 @@
 #define DUALNERF_HAVE_AVX512 1   // compiled in with a target attribute; used where the CPU has it
 #endif
 
+// Builds with -mavx2 -mfma (__init__.py isa_flags, where the building CPU has both): AVX2 code for the MLP
+// layers (mlp.h, mlp_train.cpp) and the look-ups (lookups.cpp), used where the CPU has no AVX-512.
+#if defined(__x86_64__) && defined(__GNUC__) && defined(__AVX2__) && defined(__FMA__)
+#include <immintrin.h>
+#define DUALNERF_HAVE_AVX2 1
+#endif
+
 namespace dualnerf {
 
 #ifdef DUALNERF_HAVE_AVX512

@@ -214,6 +214,116 @@ __attribute__((target("avx512f"))) inline int corners16_to_arrays(const Table& t
   return n;
 }
 
+#endif
+
+#ifdef DUALNERF_HAVE_AVX2
+// ---- The same look-ups 8 points at a time (AVX2, for CPUs without AVX-512) ----
+// Lane by lane the operations of corners16 / lookup16 in their order (no contraction), so the same bits.
+
+struct AxisV8 {
+  __m256i i0;
+  __m256 f;
+};
+
+inline AxisV8 axis_coord_v8(__m256 c, int64_t size) {
+  const __m256 top = _mm256_set1_ps(static_cast<float>(size - 1));
+  __m256 p = _mm256_mul_ps(_mm256_mul_ps(_mm256_add_ps(c, _mm256_set1_ps(1.0f)), _mm256_set1_ps(0.5f)), top);
+  p = _mm256_min_ps(_mm256_max_ps(p, _mm256_setzero_ps()), top);    // max: NaN and -0 -> +0, as the scalar test
+  const __m256i i0 = _mm256_min_epi32(_mm256_cvttps_epi32(p), _mm256_set1_epi32(static_cast<int>(size - 2)));
+  return {i0, _mm256_sub_ps(p, _mm256_cvtepi32_ps(i0))};
+}
+
+inline int corners8(const Table& t, const float* xs, int64_t stride, __m256i off[8], __m256 w[8]) {
+  const int r = static_cast<int>(t.res), c = static_cast<int>(t.stride);
+  const __m256 one = _mm256_set1_ps(1.0f);
+  if (t.kind == 3) {
+    const AxisV8 ax = axis_coord_v8(_mm256_loadu_ps(xs), r), ay = axis_coord_v8(_mm256_loadu_ps(xs + stride), r),
+                 az = axis_coord_v8(_mm256_loadu_ps(xs + 2 * stride), r);
+    const __m256i rr = _mm256_set1_epi32(r);
+    const __m256i base = _mm256_mullo_epi32(
+        _mm256_add_epi32(_mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(az.i0, rr), ay.i0), rr), ax.i0),
+        _mm256_set1_epi32(c));
+    const __m256i sx = _mm256_set1_epi32(c), sy = _mm256_set1_epi32(c * r), sz = _mm256_set1_epi32(c * r * r);
+    const __m256 wx[2] = {_mm256_sub_ps(one, ax.f), ax.f}, wy[2] = {_mm256_sub_ps(one, ay.f), ay.f},
+                 wz[2] = {_mm256_sub_ps(one, az.f), az.f};
+    int n = 0;
+    for (int dz = 0; dz < 2; ++dz)
+      for (int dy = 0; dy < 2; ++dy) {
+        const __m256 wzy = _mm256_mul_ps(wz[dz], wy[dy]);
+        __m256i row = base;
+        if (dz) row = _mm256_add_epi32(row, sz);
+        if (dy) row = _mm256_add_epi32(row, sy);
+        off[n] = row;
+        w[n++] = _mm256_mul_ps(wzy, wx[0]);
+        off[n] = _mm256_add_epi32(row, sx);
+        w[n++] = _mm256_mul_ps(wzy, wx[1]);
+      }
+    return n;
+  }
+  const AxisV8 au = axis_coord_v8(_mm256_loadu_ps(xs + t.a0 * stride), r),
+               av = axis_coord_v8(_mm256_loadu_ps(xs + t.a1 * stride), r);
+  const __m256i base = _mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(av.i0, _mm256_set1_epi32(r)), au.i0),
+                                          _mm256_set1_epi32(c));
+  const __m256i su = _mm256_set1_epi32(c), sv = _mm256_set1_epi32(c * r);
+  const __m256 u0 = _mm256_sub_ps(one, au.f), v0 = _mm256_sub_ps(one, av.f);
+  off[0] = base;
+  w[0] = _mm256_mul_ps(v0, u0);
+  off[1] = _mm256_add_epi32(base, su);
+  w[1] = _mm256_mul_ps(v0, au.f);
+  off[2] = _mm256_add_epi32(base, sv);
+  w[2] = _mm256_mul_ps(av.f, u0);
+  off[3] = _mm256_add_epi32(_mm256_add_epi32(base, sv), su);
+  w[3] = _mm256_mul_ps(av.f, au.f);
+  return 4;
+}
+
+// A corner's two features for 8 points: two 4-lane gathers of 8-byte pairs, split into feature 0 and 1.
+inline void gather_features8(__m256i offset, const float* table, __m256& first, __m256& second) {
+  const __m256 lo = _mm256_castpd_ps(_mm256_i32gather_pd(reinterpret_cast<const double*>(table),
+                                                         _mm256_castsi256_si128(offset), 4));
+  const __m256 hi = _mm256_castpd_ps(_mm256_i32gather_pd(reinterpret_cast<const double*>(table),
+                                                         _mm256_extracti128_si256(offset, 1), 4));
+  // lo = a0 b0 a1 b1 | a2 b2 a3 b3, hi = a4 b4 a5 b5 | a6 b6 a7 b7
+  const __m256 evens = _mm256_shuffle_ps(lo, hi, _MM_SHUFFLE(2, 0, 2, 0));   // a0 a1 a4 a5 | a2 a3 a6 a7
+  const __m256 odds = _mm256_shuffle_ps(lo, hi, _MM_SHUFFLE(3, 1, 3, 1));
+  first = _mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(evens), _MM_SHUFFLE(3, 1, 2, 0)));
+  second = _mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(odds), _MM_SHUFFLE(3, 1, 2, 0)));
+}
+
+template <bool Pair>
+void lookup8(const Table& t, const float* ta, const float* tb, const float* xs, int64_t stride, float* oa, float* ob,
+             int64_t n_out) {
+  __m256i off[8];
+  __m256 w[8];
+  const int n = corners8(t, xs, stride, off, w);
+  __m256 acc[4] = {_mm256_setzero_ps(), _mm256_setzero_ps(), _mm256_setzero_ps(), _mm256_setzero_ps()};
+  for (int k = 0; k < n; ++k) {
+    __m256 f0, f1;
+    gather_features8(off[k], ta, f0, f1);
+    acc[0] = _mm256_add_ps(acc[0], _mm256_mul_ps(w[k], f0));
+    acc[1] = _mm256_add_ps(acc[1], _mm256_mul_ps(w[k], f1));
+    if (Pair) {
+      gather_features8(off[k], tb, f0, f1);
+      acc[2] = _mm256_add_ps(acc[2], _mm256_mul_ps(w[k], f0));
+      acc[3] = _mm256_add_ps(acc[3], _mm256_mul_ps(w[k], f1));
+    }
+  }
+  alignas(32) float values[4][8];
+  for (int a = 0; a < (Pair ? 4 : 2); ++a) _mm256_store_ps(values[a], acc[a]);
+  for (int lane = 0; lane < 8; ++lane) {
+    float* row = oa + lane * n_out + t.column;
+    row[0] = values[0][lane];
+    row[1] = values[1][lane];
+    if (Pair) {
+      float* row_b = ob + lane * n_out + t.column;
+      row_b[0] = values[2][lane];
+      row_b[1] = values[3][lane];
+    }
+  }
+}
+#endif
+
+#if defined(DUALNERF_HAVE_AVX512) || defined(DUALNERF_HAVE_AVX2)
 // ---- Prefetching the backward's gradient rows ----
 constexpr int64_t kScatterAhead = 1;    // groups of 16 points whose gradient lines are requested ahead (1-8
                                         // measured: 1 was best, 1.3-1.9x the backward without)
@@ -237,6 +347,28 @@ inline void prefetch_corners(float* buffer, const GroupCorners& c, const Table& 
     }
 }
 
+
+// A group's corners (16 points) from the vector code this CPU runs: corners16 (AVX-512) or corners8 twice.
+inline int group_corners(const Table& t, const float* xs, int64_t stride, GroupCorners& c) {
+#ifdef DUALNERF_HAVE_AVX512
+  if (avx512_available()) return corners16_to_arrays(t, xs, stride, c.off, c.w);
+#endif
+#ifdef DUALNERF_HAVE_AVX2
+  int n = 0;
+  for (int half = 0; half < 2; ++half) {
+    __m256i off[8];
+    __m256 w[8];
+    n = corners8(t, xs + 8 * half, stride, off, w);
+    for (int k = 0; k < n; ++k) {
+      _mm256_storeu_si256(reinterpret_cast<__m256i*>(c.off[k] + 8 * half), off[k]);
+      _mm256_storeu_ps(c.w[k] + 8 * half, w[k]);
+    }
+  }
+  return n;
+#else
+  return 0;
+#endif
+}
 #endif
 
 }  // namespace
@@ -268,6 +400,27 @@ void dualnerf::lookup_range(const std::vector<Table>& tables, const std::vector<
                          n_out);
         else
           lookup16<false>(tables[k], data_a[k], nullptr, xs.data() + i, n, oa, nullptr, n_out);
+      }
+    }
+  }
+#endif
+#ifdef DUALNERF_HAVE_AVX2
+  if (vector_path && !avx512_available()) {
+    vector_end = begin + (end - begin) / 8 * 8;
+    const int64_t n = vector_end - begin;
+    const std::vector<float> xs = coordinate_arrays(xp, begin, n);
+    for (size_t k = 0; k < tables.size(); ++k) {
+      if (!vector_lookup_applies(tables[k])) {
+        scalar(k, begin, vector_end);
+        continue;
+      }
+      for (int64_t i = 0; i < n; i += 8) {
+        float* oa = out_a + n_out * (begin + i - row0);
+        if (data_b)
+          lookup8<true>(tables[k], data_a[k], (*data_b)[k], xs.data() + i, n, oa, out_b + n_out * (begin + i - row0),
+                        n_out);
+        else
+          lookup8<false>(tables[k], data_a[k], nullptr, xs.data() + i, n, oa, nullptr, n_out);
       }
     }
   }
@@ -333,7 +486,11 @@ void accumulate_gradients(const std::vector<Table>& tables, const float* xp, con
   // With AVX-512, each group of 16 points gets its corner offsets and weights from corners16 (the scalar
   // corners()'s bits, see lookup16); the additions stay scalar, point by point and corner by corner in
   // the scalar order, so the sums are the same bits.
+#if defined(DUALNERF_HAVE_AVX2)
+  const bool vec = vector_path;                      // AVX-512 where the CPU has it, else AVX2 (group_corners)
+#else
   const bool vec = vector_path && avx512_available();
+#endif
   const int64_t n_vec = vec ? m / kLookupLanes * kLookupLanes : 0;
   const std::vector<float> xs = coordinate_arrays(xp, 0, n_vec);
   parallel_for(0, static_cast<int64_t>(tables.size()), 1, [&](int64_t begin, int64_t end) {
@@ -347,7 +504,7 @@ void accumulate_gradients(const std::vector<Table>& tables, const float* xp, con
         if (touched != nullptr) touched[offset / kTouchChunk] = 1;
       };
       int64_t i = 0;
-#ifdef DUALNERF_HAVE_AVX512
+#if defined(DUALNERF_HAVE_AVX512) || defined(DUALNERF_HAVE_AVX2)
       if (n_vec > 0 && vector_lookup_applies(t)) {
         // The additions wait on the gradient buffer's cache lines (random rows of tables too large for the
         // caches): group g + kScatterAhead's corners are computed and their lines requested while group g
@@ -356,7 +513,7 @@ void accumulate_gradients(const std::vector<Table>& tables, const float* xp, con
         const int64_t groups = n_vec / kLookupLanes;
         auto prepare = [&](int64_t g) {
           GroupCorners& c = ring[g % kRing];
-          c.n = corners16_to_arrays(t, xs.data() + g * kLookupLanes, n_vec, c.off, c.w);
+          c.n = group_corners(t, xs.data() + g * kLookupLanes, n_vec, c);
           prefetch_corners(grad, c, t);
         };
         for (int64_t g = 0; g < std::min(kScatterAhead, groups); ++g) prepare(g);
