@@ -52,7 +52,7 @@ def _cases(a, b, points: int):
     def inference(dual, precision):
         def run():
             with torch.no_grad(), kernels.mlp_precision(precision):
-                second = dict(second=(b.grid_tables(), b.mlp_layers()), blend=(0.3, 0.1)) if dual else {}
+                second = {"second": (b.grid_tables(), b.mlp_layers()), "blend": (0.3, 0.1)} if dual else {}
                 return kernels.field_inference(x, sh, a.grid_tables(), a.mlp_layers(), **second)
         return run
 
