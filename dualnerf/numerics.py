@@ -20,9 +20,9 @@ machines that would compute different bits never share a key.
 """
 from __future__ import annotations
 
-import functools
 import os
-import platform
+
+from dualnerf.cpu import cpu_info
 
 
 def use_threads(n: int) -> dict:
@@ -36,33 +36,12 @@ def use_threads(n: int) -> dict:
     return {"kernel_threads": n if kernels.grid_kernel() is not None else 0, "torch_threads": torch.get_num_threads()}
 
 
-@functools.cache
-def _cpu() -> tuple[str, str, frozenset[str]]:
-    """(vendor, model name, flags) from /proc/cpuinfo (empty where it does not exist)."""
-    vendor, model, flags = platform.machine(), platform.processor() or platform.machine(), frozenset()
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                key, _, value = line.partition(":")
-                key, value = key.strip(), value.strip()
-                if key == "vendor_id":
-                    vendor = value
-                elif key == "model name":
-                    model = value
-                elif key == "flags":
-                    flags = frozenset(value.split())
-                    break
-    except OSError:
-        pass
-    return vendor, model, flags
-
-
 # The instruction-set levels that change which code the libraries run, highest first.
 ISA_LEVELS = (("amx_bf16", "amx"), ("avx512f", "avx512"), ("avx2", "avx2"), ("sse4_2", "sse4.2"))
 
 
 def isa_level() -> str:
-    flags = _cpu()[2]
+    flags = cpu_info()[2]
     return next((name for flag, name in ISA_LEVELS if flag in flags), "baseline")
 
 
@@ -80,7 +59,7 @@ def _numpy_dispatch() -> str:
 def cpu_fingerprint() -> dict:
     """The CPU's vendor and instruction-set level and numpy's SIMD dispatch: what decides the bits of
     numpy (and OpenCV) code."""
-    return {"cpu": f"{_cpu()[0]} {isa_level()}", "numpy_simd": _numpy_dispatch()}
+    return {"cpu": f"{cpu_info()[0]} {isa_level()}", "numpy_simd": _numpy_dispatch()}
 
 
 def fingerprint(bf16: bool = False) -> dict:
@@ -105,7 +84,7 @@ def provenance() -> dict:
 
     from dualnerf import kernels
 
-    vendor, model, flags = _cpu()
+    vendor, model, flags = cpu_info()
     selecting = sorted(f for f in flags if f in {"avx2", "fma", "avx512f", "avx512bw", "avx512vl", "avx512_bf16",
                                                  "amx_bf16", "amx_tile", "f16c"})
     overrides = {k: v for k, v in os.environ.items()

@@ -100,10 +100,10 @@ def test_the_generic_build_gives_the_bits_of_this_cpus_build():
 
 
 def test_the_avx2_flags_follow_the_cpu_and_the_build_setting(monkeypatch):
-    monkeypatch.setitem(kernels._state, "cpu_flags", {"avx2", "fma", "sse2"})
+    monkeypatch.setattr(kernels, "cpu_flags", lambda: frozenset({"avx2", "fma", "sse2"}))
     assert kernels.isa_flags() == ["-mavx2", "-mfma"] and kernels.build_name().endswith("_avx2")
-    monkeypatch.setitem(kernels._state, "cpu_flags", {"avx2", "sse2"})           # AVX2 without FMA
+    monkeypatch.setattr(kernels, "cpu_flags", lambda: frozenset({"avx2", "sse2"}))     # AVX2 without FMA
     assert kernels.isa_flags() == [] and not kernels.build_name().endswith("_avx2")
-    monkeypatch.setitem(kernels._state, "cpu_flags", {"avx2", "fma"})
+    monkeypatch.setattr(kernels, "cpu_flags", lambda: frozenset({"avx2", "fma"}))
     monkeypatch.setenv("DUALNERF_KERNEL_BUILD", "generic")
     assert kernels.isa_flags() == [] and kernels.build_name().endswith("_portable")

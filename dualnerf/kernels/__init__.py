@@ -48,6 +48,8 @@ from pathlib import Path
 
 import torch
 
+from dualnerf.cpu import cpu_flags
+
 # One extension from the files beside this one (kernels.h says which does what).
 _SOURCES = sorted(Path(__file__).parent.glob("*.cpp"))
 _HEADERS = sorted(Path(__file__).parent.glob("*.h"))
@@ -136,22 +138,7 @@ def isa_flags() -> list[str]:
     AVX2 (a cluster node) never loads this build there."""
     if os.environ.get("DUALNERF_KERNEL_BUILD", "") == "generic":
         return []
-    return ["-mavx2", "-mfma"] if _cpu_flags() >= {"avx2", "fma"} else []
-
-
-def _cpu_flags() -> set[str]:
-    """The CPU's feature flags from /proc/cpuinfo (x86 Linux; elsewhere none)."""
-    if "cpu_flags" not in _state:
-        flags: set[str] = set()
-        try:
-            for line in Path("/proc/cpuinfo").read_text().splitlines():
-                if line.startswith("flags"):
-                    flags = set(line.split(":", 1)[1].split())
-                    break
-        except OSError:
-            pass
-        _state["cpu_flags"] = flags
-    return _state["cpu_flags"]
+    return ["-mavx2", "-mfma"] if cpu_flags() >= {"avx2", "fma"} else []
 
 
 def kernel_name() -> str:
@@ -466,14 +453,14 @@ def _refuse_autograd(name: str, *tensors: torch.Tensor) -> None:
 
 
 def vector_path() -> bool:
-    """The AVX-512 look-up and layer code where the CPU has it, else the AVX2 layer tiles where the build has
-    them (DUALNERF_KERNEL_VECTOR=0: the scalar code, for tests; all give the same bits)."""
+    """The AVX-512 code where the CPU has it, else the AVX2 layer and look-up code where the build has it
+    (DUALNERF_KERNEL_VECTOR=0: the scalar code, for tests; all give the same bits)."""
     return os.environ.get("DUALNERF_KERNEL_VECTOR", "1") != "0"
 
 
 def vector_code() -> str:
-    """Which vector code vector_path() runs on this CPU and build: "avx512", "avx2" (the MLP layers only;
-    look-ups, sampler and compositing run their scalar code) or "none"."""
+    """Which vector code vector_path() runs on this CPU and build: "avx512", "avx2" (the MLP layers and the
+    look-ups; the sampler and compositing run their scalar code) or "none"."""
     module = grid_kernel()
     if module is None:
         return "none"

@@ -219,6 +219,8 @@ __attribute__((target("avx512f"))) inline int corners16_to_arrays(const Table& t
 #ifdef DUALNERF_HAVE_AVX2
 // ---- The same look-ups 8 points at a time (AVX2, for CPUs without AVX-512) ----
 // Lane by lane the operations of corners16 / lookup16 in their order (no contraction), so the same bits.
+// Written out again rather than templated over the vector width: the AVX-512 code is compiled under
+// target("avx512f"), which a shared template would carry into code an AVX2-only CPU runs.
 
 struct AxisV8 {
   __m256i i0;
