@@ -446,13 +446,12 @@ std::vector<torch::Tensor> mlp_inference(torch::Tensor features, torch::Tensor s
   auto h_color = torch::empty({m, 3}, features.options());
   const float *fp = features.data_ptr<float>(), *shp = sh.data_ptr<float>();
   float *sp = h_sigma.data_ptr<float>(), *cp = h_color.data_ptr<float>();
-  const bool vec = vector_path;    // the layer code picks AVX-512, AVX2 or scalar (mlp.h)
   parallel_for(0, (m + kInferBlock - 1) / kInferBlock, 1, [&](int64_t block_begin, int64_t block_end) {
     Scratch scratch(mlps);
     for (int64_t blk = block_begin; blk < block_end; ++blk) {
       const int64_t begin = blk * kInferBlock, rows = std::min(m, begin + kInferBlock) - begin;
       field_mlps(mlps, fp + begin * n_features, n_features, shp + begin * n_sh, nullptr, rows, scratch, sp + begin,
-                 cp + 3 * begin, vec, false);
+                 cp + 3 * begin, vector_path, false);
     }
   });
   return {h_sigma, h_color};

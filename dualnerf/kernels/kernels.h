@@ -271,6 +271,29 @@ inline float exp_scalar(float x) {
   return p * scale;
 }
 
+#ifdef DUALNERF_HAVE_AVX2
+// exp16's operations on 8 floats (builds with the AVX2 flags), with 2^n built as exp_scalar builds it: the
+// same bits as both.
+inline __m256 exp8(__m256 x) {
+  x = _mm256_min_ps(_mm256_max_ps(x, _mm256_set1_ps(-87.0f)), _mm256_set1_ps(88.0f));
+  const __m256 n = _mm256_round_ps(_mm256_mul_ps(x, _mm256_set1_ps(1.44269504088896341f)),
+                                   _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+  __m256 r = _mm256_fnmadd_ps(n, _mm256_set1_ps(0.693145751953125f), x);
+  r = _mm256_fnmadd_ps(n, _mm256_set1_ps(1.428606765330187e-06f), r);
+  __m256 p = _mm256_set1_ps(1.0f / 5040.0f);
+  for (const float k : {1.0f / 720.0f, 1.0f / 120.0f, 1.0f / 24.0f, 1.0f / 6.0f, 0.5f, 1.0f, 1.0f})
+    p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(k));
+  const __m256i bits = _mm256_slli_epi32(_mm256_add_epi32(_mm256_cvtps_epi32(n), _mm256_set1_epi32(127)), 23);
+  return _mm256_mul_ps(p, _mm256_castsi256_ps(bits));
+}
+
+// The first `left` lanes of an 8-lane vector as all-ones (none for left <= 0): masked loads of row tails.
+inline __m256i first_lanes8(int64_t left) {
+  const int count = static_cast<int>(std::min<int64_t>(std::max<int64_t>(left, 0), 8));
+  return _mm256_cmpgt_epi32(_mm256_set1_epi32(count), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+}
+#endif
+
 // Every table's features for points [begin, end) into rows (i - row0) of out_a (and out_b: the second
 // field's tables data_b, when given); lookups.cpp.
 void lookup_range(const std::vector<Table>& tables, const std::vector<const float*>& data_a,

@@ -7,10 +7,6 @@
 
 #include "kernels.h"
 
-#if defined(__AVX2__) && defined(__FMA__)
-#include <immintrin.h>
-#endif
-
 namespace dualnerf {
 
 struct Layer {
@@ -19,20 +15,40 @@ struct Layer {
   int in, out, out_pad;
 };
 
-#if defined(__AVX2__) && defined(__FMA__)
-// RB rows x NV 8-float vectors of outputs in registers, for builds with the AVX2 flags (kernels/__init__.py
-// isa_flags): the same chains as the scalar and AVX-512 code (bias first, then k in order, one rounding per
-// fused multiply-add), so the same bits.
+#ifdef DUALNERF_HAVE_AVX2
+// AVX2 has 16 vector registers. Tiles of B = 6 rows (or inputs, or outputs) x 16 values keep 12
+// accumulators, the 2 vectors they share and a broadcast in registers; a tile of all of a layer's outputs
+// (up to 8 vectors of 8) spilled its accumulators to memory on every step.
+
+// Calls tile.operator()<N>(i) on [i, i + N) for consecutive tiles covering [0, count): N = 6, then the
+// rest as one tile of 4, 3, 2 or 1 (5 = 4 + 1).
+template <typename Tile>
+inline void for_tiles6(int64_t count, Tile&& tile) {
+  int64_t i = 0;
+  for (; i + 6 <= count; i += 6) tile.template operator()<6>(i);
+  switch (count - i) {
+    case 5: tile.template operator()<4>(i); tile.template operator()<1>(i + 4); break;
+    case 4: tile.template operator()<4>(i); break;
+    case 3: tile.template operator()<3>(i); break;
+    case 2: tile.template operator()<2>(i); break;
+    case 1: tile.template operator()<1>(i); break;
+  }
+}
+
+// RB rows x outputs [col, col + 8 NV) in registers, for builds with the AVX2 flags (kernels/__init__.py
+// isa_flags): the same chains as the scalar and AVX-512 code (bias first, then k in order, one rounding
+// per fused multiply-add), so the same bits.
 template <int NV, int RB>
-inline void layer_tile_avx2(const Layer& l, const float* in, int64_t ld_in, float* out, int64_t ld_out, bool relu) {
+inline void layer_tile_avx2(const Layer& l, int col, const float* in, int64_t ld_in, float* out, int64_t ld_out,
+                            bool relu) {
   __m256 acc[RB][NV];
   for (int v = 0; v < NV; ++v) {
-    const __m256 bias = _mm256_loadu_ps(l.b + 8 * v);
+    const __m256 bias = _mm256_loadu_ps(l.b + col + 8 * v);
     for (int r = 0; r < RB; ++r) acc[r][v] = bias;
   }
   for (int k = 0; k < l.in; ++k) {
     __m256 w[NV];
-    for (int v = 0; v < NV; ++v) w[v] = _mm256_loadu_ps(l.wt + k * l.out_pad + 8 * v);
+    for (int v = 0; v < NV; ++v) w[v] = _mm256_loadu_ps(l.wt + k * l.out_pad + col + 8 * v);
     for (int r = 0; r < RB; ++r) {
       const __m256 x = _mm256_broadcast_ss(in + r * ld_in + k);
       for (int v = 0; v < NV; ++v) acc[r][v] = _mm256_fmadd_ps(x, w[v], acc[r][v]);
@@ -40,28 +56,27 @@ inline void layer_tile_avx2(const Layer& l, const float* in, int64_t ld_in, floa
   }
   const __m256 zero = _mm256_setzero_ps();
   for (int r = 0; r < RB; ++r) {
-    float* y = out + r * ld_out;
+    float* y = out + r * ld_out + col;
     for (int v = 0; v < NV; ++v) {
       const __m256 value = relu ? _mm256_max_ps(acc[r][v], zero) : acc[r][v];
-      const int left = l.out - 8 * v;
+      const int left = l.out - col - 8 * v;
       if (left >= 8) {
         _mm256_storeu_ps(y + 8 * v, value);
       } else if (left > 0) {
-        alignas(32) float lanes[8];
-        _mm256_store_ps(lanes, value);
-        for (int j = 0; j < left; ++j) y[8 * v + j] = lanes[j];
+        _mm256_maskstore_ps(y + 8 * v, first_lanes8(left), value);
       }
     }
   }
 }
 
-template <int NV>
-void layer_rows_avx2(const Layer& l, const float* in, int64_t ld_in, int64_t rows, float* out, int64_t ld_out,
-                     bool relu) {
-  constexpr int RB = NV >= 8 ? 1 : 8 / NV;    // <= 8 accumulators: AVX2 has 16 registers
-  int64_t r = 0;
-  for (; r + RB <= rows; r += RB) layer_tile_avx2<NV, RB>(l, in + r * ld_in, ld_in, out + r * ld_out, ld_out, relu);
-  for (; r < rows; ++r) layer_tile_avx2<NV, 1>(l, in + r * ld_in, ld_in, out + r * ld_out, ld_out, relu);
+// Rows in tiles of 6 x 16 outputs; a layer with at most 8 outputs (the colour output's 3) in tiles of 6 x 8.
+inline void layer_rows_avx2(const Layer& l, const float* in, int64_t ld_in, int64_t rows, float* out,
+                            int64_t ld_out, bool relu) {
+  for_tiles6(rows, [&]<int RB>(int64_t r) {
+    if (l.out <= 8) return layer_tile_avx2<1, RB>(l, 0, in + r * ld_in, ld_in, out + r * ld_out, ld_out, relu);
+    for (int col = 0; col < l.out; col += 16)
+      layer_tile_avx2<2, RB>(l, col, in + r * ld_in, ld_in, out + r * ld_out, ld_out, relu);
+  });
 }
 #endif
 
@@ -134,15 +149,8 @@ inline void layer_rows(const Layer& l, const float* in, int64_t ld_in, int64_t r
     }
   }
 #endif
-#if defined(__AVX2__) && defined(__FMA__)
-  if (vector_path) {
-    switch (l.out_pad / 8) {
-      case 2: return layer_rows_avx2<2>(l, in, ld_in, rows, out, ld_out, relu);
-      case 4: return layer_rows_avx2<4>(l, in, ld_in, rows, out, ld_out, relu);
-      case 8: return layer_rows_avx2<8>(l, in, ld_in, rows, out, ld_out, relu);
-      case 16: return layer_rows_avx2<16>(l, in, ld_in, rows, out, ld_out, relu);
-    }
-  }
+#ifdef DUALNERF_HAVE_AVX2
+  if (vector_path && l.out_pad % 16 == 0) return layer_rows_avx2(l, in, ld_in, rows, out, ld_out, relu);
 #endif
   layer_rows_portable(l, in, ld_in, rows, out, ld_out, relu);
 }

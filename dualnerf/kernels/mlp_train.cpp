@@ -73,35 +73,35 @@ void accumulate_portable(float* g, float* bias, int in, int out_pad, const float
   }
 }
 
-#if defined(__AVX2__) && defined(__FMA__)
-// accumulate_portable for builds with the AVX2 flags (kernels/__init__.py isa_flags): NV 8-float vectors
-// of outputs and KB inputs in registers, per entry the same chain in the same row order, so the same bits.
+#ifdef DUALNERF_HAVE_AVX2
+// accumulate_portable for builds with the AVX2 flags (kernels/__init__.py isa_flags): KB inputs x outputs
+// [col, col + 8 NV) in registers (tiles as mlp.h's layer_rows_avx2), per entry the same chain in the same
+// row order, so the same bits.
 template <int NV, int KB>
-inline void accumulate_tile_avx2(float* g, int out_pad, const float* x, int64_t ld_x, const float* dy, int64_t ld_dy,
-                                 int64_t rows) {
+inline void accumulate_tile_avx2(float* g, int out_pad, int col, const float* x, int64_t ld_x, const float* dy,
+                                 int64_t ld_dy, int64_t rows) {
   __m256 acc[KB][NV];
   for (int i = 0; i < KB; ++i)
-    for (int v = 0; v < NV; ++v) acc[i][v] = _mm256_loadu_ps(g + i * out_pad + 8 * v);
+    for (int v = 0; v < NV; ++v) acc[i][v] = _mm256_loadu_ps(g + i * out_pad + col + 8 * v);
   for (int64_t r = 0; r < rows; ++r) {
     __m256 d[NV];
-    for (int v = 0; v < NV; ++v) d[v] = _mm256_loadu_ps(dy + r * ld_dy + 8 * v);
+    for (int v = 0; v < NV; ++v) d[v] = _mm256_loadu_ps(dy + r * ld_dy + col + 8 * v);
     for (int i = 0; i < KB; ++i) {
       const __m256 xs = _mm256_broadcast_ss(x + r * ld_x + i);
       for (int v = 0; v < NV; ++v) acc[i][v] = _mm256_fmadd_ps(xs, d[v], acc[i][v]);
     }
   }
   for (int i = 0; i < KB; ++i)
-    for (int v = 0; v < NV; ++v) _mm256_storeu_ps(g + i * out_pad + 8 * v, acc[i][v]);
+    for (int v = 0; v < NV; ++v) _mm256_storeu_ps(g + i * out_pad + col + 8 * v, acc[i][v]);
 }
 
-template <int NV>
 void accumulate_avx2(float* g, float* bias, int in, int out_pad, const float* x, int64_t ld_x, const float* dy,
                      int64_t ld_dy, int64_t rows) {
-  constexpr int KB = NV >= 8 ? 1 : 8 / NV;     // <= 8 accumulators beside the dy vectors (16 registers)
-  int k = 0;
-  for (; k + KB <= in; k += KB) accumulate_tile_avx2<NV, KB>(g + k * out_pad, out_pad, x + k, ld_x, dy, ld_dy, rows);
-  for (; k < in; ++k) accumulate_tile_avx2<NV, 1>(g + k * out_pad, out_pad, x + k, ld_x, dy, ld_dy, rows);
-  for (int v = 0; v < NV; ++v) {
+  for (int col = 0; col < out_pad; col += 16)
+    for_tiles6(in, [&]<int KB>(int64_t k) {
+      accumulate_tile_avx2<2, KB>(g + k * out_pad, out_pad, col, x + k, ld_x, dy, ld_dy, rows);
+    });
+  for (int v = 0; v < out_pad / 8; ++v) {
     __m256 acc = _mm256_loadu_ps(bias + 8 * v);
     for (int64_t r = 0; r < rows; ++r) acc = _mm256_add_ps(acc, _mm256_loadu_ps(dy + r * ld_dy + 8 * v));
     _mm256_storeu_ps(bias + 8 * v, acc);
@@ -158,13 +158,8 @@ void accumulate(float* g, float* bias, int in, int out_pad, const float* x, int6
     }
   }
 #endif
-#if defined(__AVX2__) && defined(__FMA__)
-  if (vector_path) switch (out_pad / 8) {
-    case 2: return accumulate_avx2<2>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
-    case 4: return accumulate_avx2<4>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
-    case 8: return accumulate_avx2<8>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
-    case 16: return accumulate_avx2<16>(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
-  }
+#ifdef DUALNERF_HAVE_AVX2
+  if (vector_path && out_pad % 16 == 0) return accumulate_avx2(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
 #endif
   accumulate_portable(g, bias, in, out_pad, x, ld_x, dy, ld_dy, rows);
 }
@@ -191,45 +186,41 @@ void accumulate_by_inputs_portable(float* gt, float* bias, int in, int in_pad, i
 
 constexpr int kMaxByInputs = 16;    // layers with at most this many outputs accumulate by inputs
 
-#if defined(__AVX2__) && defined(__FMA__)
-// accumulate_by_inputs_portable for builds with the AVX2 flags: JB outputs x NV 8-float input vectors of gt
-// in registers (inputs past `in` read as zeros, as the AVX-512 code's masked loads); per entry the same
-// chain over the rows, so the same bits.
+#ifdef DUALNERF_HAVE_AVX2
+// accumulate_by_inputs_portable for builds with the AVX2 flags: JB outputs x inputs [col, col + 8 NV) of gt
+// in registers (inputs past `in` read as zeros, as the AVX-512 code's masked loads; tiles as mlp.h's
+// layer_rows_avx2); per entry the same chain over the rows, so the same bits.
 template <int NV, int JB>
-inline void accumulate_by_inputs_tile_avx2(float* gt, int in_pad, const __m256i* lanes, bool full, const float* x,
-                                           int64_t ld_x, const float* dy, int64_t ld_dy, int64_t rows) {
+inline void accumulate_by_inputs_tile_avx2(float* gt, int in_pad, int col, const __m256i* lanes, bool full,
+                                           const float* x, int64_t ld_x, const float* dy, int64_t ld_dy,
+                                           int64_t rows) {
   __m256 acc[JB][NV];
   for (int j = 0; j < JB; ++j)
-    for (int v = 0; v < NV; ++v) acc[j][v] = _mm256_loadu_ps(gt + j * in_pad + 8 * v);
+    for (int v = 0; v < NV; ++v) acc[j][v] = _mm256_loadu_ps(gt + j * in_pad + col + 8 * v);
   for (int64_t r = 0; r < rows; ++r) {
     __m256 xs[NV];
-    for (int v = 0; v < NV; ++v)
-      xs[v] = full ? _mm256_loadu_ps(x + r * ld_x + 8 * v) : _mm256_maskload_ps(x + r * ld_x + 8 * v, lanes[v]);
+    for (int v = 0; v < NV; ++v) {
+      const float* row = x + r * ld_x + col + 8 * v;
+      xs[v] = full ? _mm256_loadu_ps(row) : _mm256_maskload_ps(row, lanes[v]);
+    }
     for (int j = 0; j < JB; ++j) {
       const __m256 d = _mm256_broadcast_ss(dy + r * ld_dy + j);
       for (int v = 0; v < NV; ++v) acc[j][v] = _mm256_fmadd_ps(xs[v], d, acc[j][v]);
     }
   }
   for (int j = 0; j < JB; ++j)
-    for (int v = 0; v < NV; ++v) _mm256_storeu_ps(gt + j * in_pad + 8 * v, acc[j][v]);
+    for (int v = 0; v < NV; ++v) _mm256_storeu_ps(gt + j * in_pad + col + 8 * v, acc[j][v]);
 }
 
-template <int NV>
 void accumulate_by_inputs_avx2(float* gt, float* bias, int in, int in_pad, int out, int out_pad, const float* x,
                                int64_t ld_x, const float* dy, int64_t ld_dy, int64_t rows) {
-  constexpr int JB = NV >= 8 ? 1 : 8 / NV;
-  __m256i lanes[NV];
-  for (int v = 0; v < NV; ++v) {
-    alignas(32) int32_t m[8];
-    for (int i = 0; i < 8; ++i) m[i] = 8 * v + i < in ? -1 : 0;
-    lanes[v] = _mm256_load_si256(reinterpret_cast<const __m256i*>(m));
+  for (int col = 0; col < in_pad; col += 16) {
+    const __m256i lanes[2] = {first_lanes8(in - col), first_lanes8(in - col - 8)};
+    const bool full = col + 16 <= in;
+    for_tiles6(out, [&]<int JB>(int64_t j) {
+      accumulate_by_inputs_tile_avx2<2, JB>(gt + j * in_pad, in_pad, col, lanes, full, x, ld_x, dy + j, ld_dy, rows);
+    });
   }
-  const bool full = in == in_pad;
-  int j = 0;
-  for (; j + JB <= out; j += JB)
-    accumulate_by_inputs_tile_avx2<NV, JB>(gt + j * in_pad, in_pad, lanes, full, x, ld_x, dy + j, ld_dy, rows);
-  for (; j < out; ++j)
-    accumulate_by_inputs_tile_avx2<NV, 1>(gt + j * in_pad, in_pad, lanes, full, x, ld_x, dy + j, ld_dy, rows);
   for (int v = 0; v < out_pad / 8; ++v) {     // lane j: the portable loop's additions in its order
     __m256 acc = _mm256_loadu_ps(bias + 8 * v);
     for (int64_t r = 0; r < rows; ++r) acc = _mm256_add_ps(acc, _mm256_loadu_ps(dy + r * ld_dy + 8 * v));
@@ -311,12 +302,9 @@ void accumulate_by_inputs(float* gt, float* bias, int in, int in_pad, int out, i
     }
   }
 #endif
-#if defined(__AVX2__) && defined(__FMA__)
-  if (vector_path) switch (in_pad / 8) {
-    case 2: return accumulate_by_inputs_avx2<2>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
-    case 4: return accumulate_by_inputs_avx2<4>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
-    case 8: return accumulate_by_inputs_avx2<8>(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
-  }
+#ifdef DUALNERF_HAVE_AVX2
+  if (vector_path && in_pad % 16 == 0)
+    return accumulate_by_inputs_avx2(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
 #endif
   accumulate_by_inputs_portable(gt, bias, in, in_pad, out, out_pad, x, ld_x, dy, ld_dy, rows);
 }
@@ -379,13 +367,12 @@ std::vector<torch::Tensor> mlp_train_forward(torch::Tensor features, torch::Tens
   const int64_t* ip = index.defined() ? index.data_ptr<int64_t>() : nullptr;
   float *sp = h_sigma.data_ptr<float>(), *cp = h_color.data_ptr<float>(), *h1 = hidden_density.data_ptr<float>(),
         *ci = color_in.data_ptr<float>(), *h2 = hidden_color.data_ptr<float>();
-  const bool vec = vector_path;    // the layer code picks AVX-512, AVX2 or scalar (mlp.h)
   parallel_for(0, (m + kTrainBlock - 1) / kTrainBlock, 1, [&](int64_t block_begin, int64_t block_end) {
     std::vector<float> density_out(kTrainBlock * l[1].out_pad), rgb(kTrainBlock * l[3].out_pad);
     for (int64_t blk = block_begin; blk < block_end; ++blk) {
       const int64_t begin = blk * kTrainBlock, rows = std::min(m, begin + kTrainBlock) - begin;
-      layer_rows(l[0], fp + begin * n_features, n_features, rows, h1 + begin * ld_h1, ld_h1, true, vec);
-      layer_rows(l[1], h1 + begin * ld_h1, ld_h1, rows, density_out.data(), l[1].out_pad, false, vec);
+      layer_rows(l[0], fp + begin * n_features, n_features, rows, h1 + begin * ld_h1, ld_h1, true, vector_path);
+      layer_rows(l[1], h1 + begin * ld_h1, ld_h1, rows, density_out.data(), l[1].out_pad, false, vector_path);
       for (int64_t r = 0; r < rows; ++r) {
         const float* d = density_out.data() + r * l[1].out_pad;
         float* c = ci + (begin + r) * ld_c;
@@ -394,8 +381,8 @@ std::vector<torch::Tensor> mlp_train_forward(torch::Tensor features, torch::Tens
         const float* s = sh_row(shp, ip, begin + r, net.n_sh);
         std::copy(s, s + net.n_sh, c + net.geo);
       }
-      layer_rows(l[2], ci + begin * ld_c, ld_c, rows, h2 + begin * ld_h2, ld_h2, true, vec);
-      layer_rows(l[3], h2 + begin * ld_h2, ld_h2, rows, rgb.data(), l[3].out_pad, false, vec);
+      layer_rows(l[2], ci + begin * ld_c, ld_c, rows, h2 + begin * ld_h2, ld_h2, true, vector_path);
+      layer_rows(l[3], h2 + begin * ld_h2, ld_h2, rows, rgb.data(), l[3].out_pad, false, vector_path);
       for (int64_t r = 0; r < rows; ++r)
         for (int j = 0; j < 3; ++j) cp[3 * (begin + r) + j] = rgb[r * l[3].out_pad + j];
     }
@@ -453,15 +440,14 @@ std::vector<torch::Tensor> mlp_train_backward(torch::Tensor grad_sigma, torch::T
               *fp = features.data_ptr<float>(), *h1 = hidden_density.data_ptr<float>(),
               *ci = color_in.data_ptr<float>(), *h2 = hidden_color.data_ptr<float>();
   float *pp = partial.data_ptr<float>(), *gf = grad_features.data_ptr<float>();
-  const bool vec = vector_path;    // the layer code picks AVX-512, AVX2 or scalar (mlp.h)
   // Layer i's weight and bias gradient sums in group g += its inputs x (rows) times its output gradients dy.
   auto accumulate_layer = [&](int i, float* g, const float* x, int64_t ld_x, const float* dy, int64_t ld_dy,
                               int64_t rows) {
     if (by_inputs[i])
       accumulate_by_inputs(g + offset[2 * i], g + offset[2 * i + 1], l[i].in, padded(l[i].in), l[i].out, l[i].out_pad,
-                           x, ld_x, dy, ld_dy, rows, vec);
+                           x, ld_x, dy, ld_dy, rows, vector_path);
     else
-      accumulate(g + offset[2 * i], g + offset[2 * i + 1], l[i].in, l[i].out_pad, x, ld_x, dy, ld_dy, rows, vec);
+      accumulate(g + offset[2 * i], g + offset[2 * i + 1], l[i].in, l[i].out_pad, x, ld_x, dy, ld_dy, rows, vector_path);
   };
   parallel_for(0, n_groups, 1, [&](int64_t group_begin, int64_t group_end) {
     // Per block: the output gradients of layers 3, 2, 1, 0 (rows x out_pad, zero padding) and dx of layer 2.
@@ -479,20 +465,20 @@ std::vector<torch::Tensor> mlp_train_backward(torch::Tensor grad_sigma, torch::T
         for (int64_t r = 0; r < rows; ++r)
           for (int j = 0; j < 3; ++j) d3[r * l[3].out_pad + j] = gc[3 * (begin + r) + j];
         accumulate_layer(3, g, a2, ld_h2, d3.data(), l[3].out_pad, rows);
-        layer_rows(back[3], d3.data(), l[3].out_pad, rows, d2.data(), l[2].out_pad, false, vec);
+        layer_rows(back[3], d3.data(), l[3].out_pad, rows, d2.data(), l[2].out_pad, false, vector_path);
         relu_backward(d2.data(), l[2].out_pad, a2, ld_h2, rows, l[2].out);
         accumulate_layer(2, g, c_in, ld_c, d2.data(), l[2].out_pad, rows);
-        layer_rows(back[2], d2.data(), l[2].out_pad, rows, dc.data(), back[2].out_pad, false, vec);
+        layer_rows(back[2], d2.data(), l[2].out_pad, rows, dc.data(), back[2].out_pad, false, vector_path);
         for (int64_t r = 0; r < rows; ++r) {
           float* d = d1.data() + r * l[1].out_pad;
           d[0] = gs[begin + r];
           std::copy(dc.data() + r * back[2].out_pad, dc.data() + r * back[2].out_pad + net.geo, d + 1);
         }
         accumulate_layer(1, g, a1, ld_h1, d1.data(), l[1].out_pad, rows);
-        layer_rows(back[1], d1.data(), l[1].out_pad, rows, d0.data(), l[0].out_pad, false, vec);
+        layer_rows(back[1], d1.data(), l[1].out_pad, rows, d0.data(), l[0].out_pad, false, vector_path);
         relu_backward(d0.data(), l[0].out_pad, a1, ld_h1, rows, l[0].out);
         accumulate_layer(0, g, fp + begin * n_features, n_features, d0.data(), l[0].out_pad, rows);
-        layer_rows(back[0], d0.data(), l[0].out_pad, rows, gf + begin * n_features, n_features, false, vec);
+        layer_rows(back[0], d0.data(), l[0].out_pad, rows, gf + begin * n_features, n_features, false, vector_path);
       }
     }
   });

@@ -204,6 +204,63 @@ __attribute__((target("avx512f"))) void place_samples_avx512(const SamplerInputs
 }
 #endif
 
+#ifdef DUALNERF_HAVE_AVX2
+// proposal_avx512's operations for the 8 rays i0 .. i0 + 7 (pdf, cdf with stride 8), for builds with the
+// AVX2 flags on CPUs without AVX-512: the same bits. The edges are then placed by the scalar walk.
+void proposal_avx2(const SamplerInputs& in, int64_t i0, float* pdf, float* cdf) {
+  const __m256i three = _mm256_setr_epi32(0, 3, 6, 9, 12, 15, 18, 21);
+  __m256 o[3], d[3];
+  for (int a = 0; a < 3; ++a) {
+    o[a] = _mm256_i32gather_ps(in.op + 3 * i0, _mm256_add_epi32(three, _mm256_set1_epi32(a)), 4);
+    d[a] = _mm256_i32gather_ps(in.dp + 3 * i0, _mm256_add_epi32(three, _mm256_set1_epi32(a)), 4);
+  }
+  const __m256 zero = _mm256_setzero_ps(), one = _mm256_set1_ps(1.0f);
+  const __m256 start = _mm256_loadu_ps(in.sp + i0), stop = _mm256_loadu_ps(in.ep + i0);
+  const __m256 diff = _mm256_sub_ps(stop, start);
+  const __m256 length = _mm256_blendv_ps(zero, diff, _mm256_cmp_ps(diff, zero, _CMP_GT_OQ));
+  const __m256 step = _mm256_div_ps(length, _mm256_set1_ps(static_cast<float>(in.P)));
+  const __m256 half_r = _mm256_set1_ps(in.half_r), top = _mm256_set1_ps(in.top);
+  const __m256i r = _mm256_set1_epi32(static_cast<int>(in.r));
+  __m256 transmittance = one, weight_sum = zero;
+  for (int64_t k = 0; k < in.P; ++k) {
+    const __m256 tc = _mm256_add_ps(start, _mm256_mul_ps(_mm256_set1_ps(static_cast<float>(k) + 0.5f), step));
+    __m256i cell[3];
+    for (int a = 0; a < 3; ++a) {
+      const __m256 c = _mm256_mul_ps(_mm256_add_ps(_mm256_add_ps(o[a], _mm256_mul_ps(tc, d[a])), one), half_r);
+      cell[a] = _mm256_cvttps_epi32(_mm256_min_ps(_mm256_max_ps(c, zero), top));   // NaN -> 0, as grid_cell
+    }
+    const __m256i index = _mm256_add_epi32(
+        _mm256_mullo_epi32(_mm256_add_epi32(_mm256_mullo_epi32(cell[0], r), cell[1]), r), cell[2]);
+    const __m256 tau = _mm256_mul_ps(_mm256_mul_ps(_mm256_set1_ps(in.fscale), _mm256_i32gather_ps(in.grid, index, 4)),
+                                     step);
+    const __m256 dense = _mm256_cmp_ps(tau, zero, _CMP_GT_OQ);
+    const __m256 survive = exp8(_mm256_sub_ps(zero, tau));
+    const __m256 w = _mm256_and_ps(dense, _mm256_mul_ps(transmittance, _mm256_sub_ps(one, survive)));
+    transmittance = _mm256_blendv_ps(transmittance, _mm256_mul_ps(transmittance, survive), dense);
+    _mm256_storeu_ps(pdf + 8 * k, w);
+    weight_sum = _mm256_add_ps(weight_sum, w);
+  }
+  const __m256 keep = _mm256_set1_ps(in.keep), uniform_bin = _mm256_set1_ps(in.uniform_bin);
+  const __m256 denominator = _mm256_add_ps(weight_sum, _mm256_set1_ps(1e-6f));
+  __m256 pdf_sum = zero;
+  for (int64_t k = 0; k < in.P; ++k) {
+    const __m256 p = _mm256_add_ps(_mm256_div_ps(_mm256_mul_ps(keep, _mm256_loadu_ps(pdf + 8 * k)), denominator),
+                                   uniform_bin);
+    _mm256_storeu_ps(pdf + 8 * k, p);
+    pdf_sum = _mm256_add_ps(pdf_sum, p);
+  }
+  __m256 cumulative = zero;
+  _mm256_storeu_ps(cdf, zero);
+  for (int64_t k = 0; k < in.P; ++k) {
+    const __m256 p = _mm256_div_ps(_mm256_loadu_ps(pdf + 8 * k), pdf_sum);
+    _mm256_storeu_ps(pdf + 8 * k, p);
+    cumulative = _mm256_add_ps(cumulative, p);
+    _mm256_storeu_ps(cdf + 8 * (k + 1), cumulative);
+  }
+  _mm256_storeu_ps(cdf + 8 * in.P, one);
+}
+#endif
+
 // Ray i's interval edges at the quantiles of its proposal (pdf, cdf with `stride`), written as midpoints,
 // lengths and the occupancy of the midpoints. edges: scratch of S + 1 floats.
 void place_samples(const SamplerInputs& in, int64_t i, const float* pdf, const float* cdf, int64_t stride,
@@ -266,16 +323,25 @@ std::vector<torch::Tensor> ray_samples(torch::Tensor origins, torch::Tensor dirs
                          static_cast<float>(1.0 - uniform_share),
                          static_cast<float>(uniform_share / static_cast<double>(P)), t.data_ptr<float>(),
                          delta.data_ptr<float>(), occupied.data_ptr<bool>()};
-  // 16 rays at a time on AVX-512 (one per lane; the grid's cells fit int32 there).
-  const bool vec = vector_path && avx512_available() && r * r * r < (int64_t(1) << 31);
+  // 16 rays at a time on AVX-512, 8 with AVX2 (one per lane; the grid's cells fit int32 there).
+  const bool vec = vector_path && r * r * r < (int64_t(1) << 31);
+  const bool avx512 = vec && avx512_available();
   parallel_for(0, n_rays, 16, [&](int64_t begin, int64_t end) {
     std::vector<float> pdf(16 * P), cdf(16 * (P + 1)), edges(16 * (S + 1));
     int64_t i = begin;
 #ifdef DUALNERF_HAVE_AVX512
-    if (vec)
+    if (avx512)
       for (; i + 16 <= end; i += 16) {
         proposal_avx512(in, i, pdf.data(), cdf.data());
         place_samples_avx512(in, i, pdf.data(), cdf.data(), edges.data());
+      }
+#endif
+#ifdef DUALNERF_HAVE_AVX2
+    if (vec && !avx512)
+      for (; i + 8 <= end; i += 8) {
+        proposal_avx2(in, i, pdf.data(), cdf.data());
+        for (int lane = 0; lane < 8; ++lane)
+          place_samples(in, i + lane, pdf.data() + lane, cdf.data() + lane, 8, edges.data());
       }
 #endif
     for (; i < end; ++i) {
