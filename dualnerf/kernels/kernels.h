@@ -287,6 +287,11 @@ inline __m256 exp8(__m256 x) {
   return _mm256_mul_ps(p, _mm256_castsi256_ps(bits));
 }
 
+// Before the loops over a register tile's rows and vectors: unrolled completely before GCC decides where
+// the accumulator array lives, so it stays in registers (without it GCC 12 stored all 12 accumulators to
+// the stack on every step of the AVX2 tiles, ~1.5x their time).
+#define DUALNERF_UNROLL _Pragma("GCC unroll 16")
+
 // The first `left` lanes of an 8-lane vector as all-ones (none for left <= 0): masked loads of row tails.
 inline __m256i first_lanes8(int64_t left) {
   const int count = static_cast<int>(std::min<int64_t>(std::max<int64_t>(left, 0), 8));

@@ -42,21 +42,28 @@ template <int NV, int RB>
 inline void layer_tile_avx2(const Layer& l, int col, const float* in, int64_t ld_in, float* out, int64_t ld_out,
                             bool relu) {
   __m256 acc[RB][NV];
+  DUALNERF_UNROLL
   for (int v = 0; v < NV; ++v) {
     const __m256 bias = _mm256_loadu_ps(l.b + col + 8 * v);
+    DUALNERF_UNROLL
     for (int r = 0; r < RB; ++r) acc[r][v] = bias;
   }
   for (int k = 0; k < l.in; ++k) {
     __m256 w[NV];
+    DUALNERF_UNROLL
     for (int v = 0; v < NV; ++v) w[v] = _mm256_loadu_ps(l.wt + k * l.out_pad + col + 8 * v);
+    DUALNERF_UNROLL
     for (int r = 0; r < RB; ++r) {
       const __m256 x = _mm256_broadcast_ss(in + r * ld_in + k);
+      DUALNERF_UNROLL
       for (int v = 0; v < NV; ++v) acc[r][v] = _mm256_fmadd_ps(x, w[v], acc[r][v]);
     }
   }
   const __m256 zero = _mm256_setzero_ps();
+  DUALNERF_UNROLL
   for (int r = 0; r < RB; ++r) {
     float* y = out + r * ld_out + col;
+    DUALNERF_UNROLL
     for (int v = 0; v < NV; ++v) {
       const __m256 value = relu ? _mm256_max_ps(acc[r][v], zero) : acc[r][v];
       const int left = l.out - col - 8 * v;

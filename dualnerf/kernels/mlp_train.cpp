@@ -81,17 +81,24 @@ template <int NV, int KB>
 inline void accumulate_tile_avx2(float* g, int out_pad, int col, const float* x, int64_t ld_x, const float* dy,
                                  int64_t ld_dy, int64_t rows) {
   __m256 acc[KB][NV];
+  DUALNERF_UNROLL
   for (int i = 0; i < KB; ++i)
+    DUALNERF_UNROLL
     for (int v = 0; v < NV; ++v) acc[i][v] = _mm256_loadu_ps(g + i * out_pad + col + 8 * v);
   for (int64_t r = 0; r < rows; ++r) {
     __m256 d[NV];
+    DUALNERF_UNROLL
     for (int v = 0; v < NV; ++v) d[v] = _mm256_loadu_ps(dy + r * ld_dy + col + 8 * v);
+    DUALNERF_UNROLL
     for (int i = 0; i < KB; ++i) {
       const __m256 xs = _mm256_broadcast_ss(x + r * ld_x + i);
+      DUALNERF_UNROLL
       for (int v = 0; v < NV; ++v) acc[i][v] = _mm256_fmadd_ps(xs, d[v], acc[i][v]);
     }
   }
+  DUALNERF_UNROLL
   for (int i = 0; i < KB; ++i)
+    DUALNERF_UNROLL
     for (int v = 0; v < NV; ++v) _mm256_storeu_ps(g + i * out_pad + col + 8 * v, acc[i][v]);
 }
 
@@ -195,20 +202,27 @@ inline void accumulate_by_inputs_tile_avx2(float* gt, int in_pad, int col, const
                                            const float* x, int64_t ld_x, const float* dy, int64_t ld_dy,
                                            int64_t rows) {
   __m256 acc[JB][NV];
+  DUALNERF_UNROLL
   for (int j = 0; j < JB; ++j)
+    DUALNERF_UNROLL
     for (int v = 0; v < NV; ++v) acc[j][v] = _mm256_loadu_ps(gt + j * in_pad + col + 8 * v);
   for (int64_t r = 0; r < rows; ++r) {
     __m256 xs[NV];
+    DUALNERF_UNROLL
     for (int v = 0; v < NV; ++v) {
       const float* row = x + r * ld_x + col + 8 * v;
       xs[v] = full ? _mm256_loadu_ps(row) : _mm256_maskload_ps(row, lanes[v]);
     }
+    DUALNERF_UNROLL
     for (int j = 0; j < JB; ++j) {
       const __m256 d = _mm256_broadcast_ss(dy + r * ld_dy + j);
+      DUALNERF_UNROLL
       for (int v = 0; v < NV; ++v) acc[j][v] = _mm256_fmadd_ps(xs[v], d, acc[j][v]);
     }
   }
+  DUALNERF_UNROLL
   for (int j = 0; j < JB; ++j)
+    DUALNERF_UNROLL
     for (int v = 0; v < NV; ++v) _mm256_storeu_ps(gt + j * in_pad + col + 8 * v, acc[j][v]);
 }
 
