@@ -12,6 +12,8 @@ not depend on the values), points uniform over the scene cube:
     inference f_S / dual, fp32 and bf16   field_inference: look-ups and MLPs (renders, f_S in training)
     look-ups pair, backward               a training step's feature look-ups and their backward
     training forward + backward           a field's MLPs under autograd (mlp_train kernels), 1/4 of the points
+    render sampler, compositing           ray_samples (128 proposal bins, 48 samples) and composite_rays
+                                          for points / 48 rays, 70% of their samples occupied
 
 Medians of --repeats after a warm-up, whatever else runs on the machine (check `uptime`).
 """
@@ -62,6 +64,18 @@ def _cases(a, b, points: int):
         (sigma.sum() + color.sum()).backward()
         return [p.grad for p in a.parameters() if p.grad is not None]
 
+    rays, n_samples = points // 48, 48
+    density = torch.rand(64, 64, 64, generator=g) ** 4 * 400          # sparse, peaked, as a fitted grid
+    origins = torch.randn(rays, 3, generator=g) * 2
+    dirs = torch.nn.functional.normalize(-origins + 0.3 * torch.randn(rays, 3, generator=g), dim=-1)
+    t_start, t_end = torch.full((rays,), 0.5), torch.full((rays,), 4.0)
+    jitter = torch.rand(rays, n_samples - 1, generator=g)
+    occupied = torch.rand(rays, n_samples, generator=g) < 0.7
+    flat = torch.nonzero(occupied.reshape(-1))[:, 0]
+    starts = torch.cat([torch.zeros(1, dtype=torch.long), occupied.sum(-1).cumsum(0)])
+    h_sigma, h_color = torch.randn(len(flat), generator=g) * 6 + 2, torch.randn(len(flat), 3, generator=g) * 3
+    delta, background = torch.rand(rays, n_samples, generator=g) * 0.05, torch.rand(rays, 3, generator=g)
+
     return {
         "inference f_S fp32": inference(False, "fp32"),
         "inference dual fp32": inference(True, "fp32"),
@@ -71,6 +85,11 @@ def _cases(a, b, points: int):
                                                             kernels.vector_path()),
         "look-ups backward": lambda: module.encode_backward(x, grad, *a.grid_tables(), kernels.vector_path()),
         f"training fwd + bwd ({train} points)": training,
+        f"render sampler ({rays} rays)": lambda: module.ray_samples(
+            origins, dirs, t_start, t_end, density, density > 5.0, 0.5, 128, n_samples, 0.1, jitter,
+            kernels.vector_path()),
+        f"compositing ({rays} rays)": lambda: module.composite_rays(h_sigma, h_color, flat, starts, delta, background,
+                                                                   15.0, kernels.vector_path()),
     }
 
 

@@ -9,10 +9,10 @@ using namespace dualnerf;
 //   m = b1 m + (1 - b1) g;  v = b2 v + (1 - b2) g g;  p = p - step_size (m / (sqrt(v) / bc2_sqrt + eps)).
 // skip_zero: entries whose gradient is exactly 0 keep p, m and v (instant-NGP's rule for feature tables:
 // a batch touches a small part of a table, and the dense update of every entry was memory-bound).
-void check_adam_tensors(const torch::Tensor& param, const torch::Tensor& grad, const torch::Tensor& exp_avg,
-                        const torch::Tensor& exp_avg_sq) {
+void check_adam_tensors(const at::Tensor& param, const at::Tensor& grad, const at::Tensor& exp_avg,
+                        const at::Tensor& exp_avg_sq) {
   for (const auto* t : {&param, &grad, &exp_avg, &exp_avg_sq})
-    TORCH_CHECK(t->scalar_type() == torch::kFloat32 && t->device().is_cpu() && t->numel() == param.numel(),
+    TORCH_CHECK(t->scalar_type() == at::kFloat && t->device().is_cpu() && t->numel() == param.numel(),
                 "adam_step: float32 CPU tensors of one size expected");
   // The optimiser state is allocated like the parameter (same strides); the element-wise update only
   // needs all four to share one memory layout.
@@ -34,7 +34,7 @@ struct AdamUpdate {
   }
 };
 
-void adam_step(torch::Tensor param, torch::Tensor grad, torch::Tensor exp_avg, torch::Tensor exp_avg_sq, double beta1,
+void adam_step(at::Tensor param, at::Tensor grad, at::Tensor exp_avg, at::Tensor exp_avg_sq, double beta1,
                double beta2, double step_size, double bias_correction2_sqrt, double eps, bool skip_zero) {
   check_adam_tensors(param, grad, exp_avg, exp_avg_sq);
   const AdamUpdate update(beta1, beta2, step_size, bias_correction2_sqrt, eps);
@@ -78,12 +78,12 @@ constexpr int64_t kAdamAhead = 64;     // chunks (of 16 values: one cache line) 
 // adam_step with skip_zero on the touched chunks of a TableGradients buffer only (an untouched chunk's
 // gradients are all zero, so skip_zero would leave it as it is anyway: the same bits as adam_step), then
 // zeroes those gradients and flags for the next backward.
-void adam_step_touched(torch::Tensor param, torch::Tensor grad, torch::Tensor touched, torch::Tensor exp_avg,
-                       torch::Tensor exp_avg_sq, double beta1, double beta2, double step_size,
+void adam_step_touched(at::Tensor param, at::Tensor grad, at::Tensor touched, at::Tensor exp_avg,
+                       at::Tensor exp_avg_sq, double beta1, double beta2, double step_size,
                        double bias_correction2_sqrt, double eps) {
   check_adam_tensors(param, grad, exp_avg, exp_avg_sq);
   const int64_t n = param.numel();
-  TORCH_CHECK(touched.scalar_type() == torch::kUInt8 && touched.is_contiguous() &&
+  TORCH_CHECK(touched.scalar_type() == at::kByte && touched.is_contiguous() &&
                   touched.numel() == (n + kTouchChunk - 1) / kTouchChunk,
               "adam_step_touched: one uint8 flag per ", kTouchChunk, " values expected");
   const AdamUpdate update(beta1, beta2, step_size, bias_correction2_sqrt, eps);

@@ -10,11 +10,11 @@ using namespace dualnerf;
 // the formulas of rendering.composite with decode_density / decode_color, summed per ray in sample order;
 // torch's exp and sums round differently, so the two agree to float32 rounding (tests/test_render_kernels.py);
 // the AVX-512, AVX2 and portable paths give the same bits.
-std::vector<torch::Tensor> occupied_samples(torch::Tensor origins, torch::Tensor dirs, torch::Tensor t,
-                                            torch::Tensor mask) {
+std::vector<at::Tensor> occupied_samples(at::Tensor origins, at::Tensor dirs, at::Tensor t,
+                                            at::Tensor mask) {
   for (const auto* x : {&origins, &dirs, &t})
-    TORCH_CHECK(x->scalar_type() == torch::kFloat32 && x->device().is_cpu(), "occupied_samples: float32 CPU tensors");
-  TORCH_CHECK(mask.scalar_type() == torch::kBool && mask.sizes() == t.sizes() && t.dim() == 2 &&
+    TORCH_CHECK(x->scalar_type() == at::kFloat && x->device().is_cpu(), "occupied_samples: float32 CPU tensors");
+  TORCH_CHECK(mask.scalar_type() == at::kBool && mask.sizes() == t.sizes() && t.dim() == 2 &&
                   origins.size(0) == t.size(0) && dirs.sizes() == origins.sizes() && origins.size(1) == 3,
               "occupied_samples: origins, dirs (R, 3), t and mask (R, S)");
   origins = origins.contiguous();
@@ -22,7 +22,7 @@ std::vector<torch::Tensor> occupied_samples(torch::Tensor origins, torch::Tensor
   t = t.contiguous();
   mask = mask.contiguous();
   const int64_t n_rays = t.size(0), S = t.size(1);
-  auto starts = torch::empty({n_rays + 1}, torch::kInt64);
+  auto starts = t.new_empty({n_rays + 1}, at::kLong);
   int64_t* st = starts.data_ptr<int64_t>();
   const bool* mp = mask.data_ptr<bool>();
   st[0] = 0;
@@ -32,9 +32,9 @@ std::vector<torch::Tensor> occupied_samples(torch::Tensor origins, torch::Tensor
     st[r + 1] = st[r] + count;
   }
   const int64_t m = st[n_rays];
-  auto x = torch::empty({m, 3}, t.options());
-  auto flat = torch::empty({m}, torch::kInt64);
-  auto ray = torch::empty({m}, torch::kInt64);
+  auto x = t.new_empty({m, 3});
+  auto flat = t.new_empty({m}, at::kLong);
+  auto ray = t.new_empty({m}, at::kLong);
   const float *op = origins.data_ptr<float>(), *dp = dirs.data_ptr<float>(), *tp = t.data_ptr<float>();
   float* xp = x.data_ptr<float>();
   int64_t *fp = flat.data_ptr<int64_t>(), *rp = ray.data_ptr<int64_t>();
@@ -190,20 +190,20 @@ void composite_ray_avx2(const RayComposite& c, int64_t r, float* buf) {
 }
 #endif
 
-std::vector<torch::Tensor> composite_rays(torch::Tensor h_sigma, torch::Tensor h_color, torch::Tensor flat,
-                                          torch::Tensor starts, torch::Tensor delta, torch::Tensor background,
+std::vector<at::Tensor> composite_rays(at::Tensor h_sigma, at::Tensor h_color, at::Tensor flat,
+                                          at::Tensor starts, at::Tensor delta, at::Tensor background,
                                           double max_h_sigma, bool vector_path) {
   for (const auto* x : {&h_sigma, &h_color, &delta, &background})
-    TORCH_CHECK(x->scalar_type() == torch::kFloat32 && x->device().is_cpu(), "composite_rays: float32 CPU tensors");
+    TORCH_CHECK(x->scalar_type() == at::kFloat && x->device().is_cpu(), "composite_rays: float32 CPU tensors");
   TORCH_CHECK(delta.dim() == 2 && starts.dim() == 1 && starts.size(0) == delta.size(0) + 1 &&
                   background.dim() == 2 && background.size(0) == delta.size(0) && background.size(1) == 3 &&
                   h_color.dim() == 2 && h_color.size(1) == 3 && h_color.size(0) == h_sigma.size(0) &&
-                  flat.size(0) == h_sigma.size(0) && starts.scalar_type() == torch::kInt64 &&
-                  flat.scalar_type() == torch::kInt64,
+                  flat.size(0) == h_sigma.size(0) && starts.scalar_type() == at::kLong &&
+                  flat.scalar_type() == at::kLong,
               "composite_rays: h_sigma (M,), h_color (M, 3), flat (M,), starts (R + 1,), delta (R, S), background (R, 3)");
   const int64_t n_rays = delta.size(0), S = delta.size(1);
-  auto color = torch::empty({n_rays, 3}, delta.options());
-  auto opacity = torch::empty({n_rays}, delta.options());
+  auto color = delta.new_empty({n_rays, 3});
+  auto opacity = delta.new_empty({n_rays});
   h_sigma = h_sigma.contiguous();
   h_color = h_color.contiguous();
   delta = delta.contiguous();

@@ -176,14 +176,14 @@ __attribute__((target("amx-tile,amx-bf16,avx512f,avx512bf16"))) void layer_rows_
 }
 #endif
 
-FieldMlps describe_mlps(const std::vector<torch::Tensor>& t, int64_t n_features, int64_t n_sh) {
+FieldMlps describe_mlps(const std::vector<at::Tensor>& t, int64_t n_features, int64_t n_sh) {
   TORCH_CHECK(t.size() == 8, "field_inference: 8 MLP tensors expected (wt, b for 4 layers)");
   FieldMlps m;
   const int64_t outs[4] = {-1, -1, -1, 3};
   for (int i = 0; i < 4; ++i) {
     const auto& wt = t[2 * i];
     const auto& b = t[2 * i + 1];
-    TORCH_CHECK(wt.dim() == 2 && wt.is_contiguous() && wt.scalar_type() == torch::kFloat32 && b.dim() == 1 &&
+    TORCH_CHECK(wt.dim() == 2 && wt.is_contiguous() && wt.scalar_type() == at::kFloat && b.dim() == 1 &&
                     b.is_contiguous() && b.size(0) == wt.size(1) && wt.size(1) % kLanes == 0,
                 "field_inference: layer weights must be contiguous float32 (in, out padded to 16) with a bias");
     m.layer[i] = {wt.data_ptr<float>(), b.data_ptr<float>(), static_cast<int>(wt.size(0)),
@@ -272,24 +272,24 @@ void field_mlps(const FieldMlps& m, const float* features, int64_t ld_features, 
 // One field (dense_b empty) or the dual field: h = (1 - w) h_S + w h_D per output (eqs. 4-5), with
 // a = f_S and b = f_D. Returns (h_sigma (M,), h_color (M, 3)); density_only: (h_sigma, an empty (0, 3)
 // tensor) without running the colour MLPs (sh then gives only its width: the colour MLP's SH inputs).
-std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, std::vector<torch::Tensor> dense_a,
-                                           std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> mlp_a,
-                                           std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b,
-                                           std::vector<torch::Tensor> mlp_b, double w_density, double w_color,
-                                           std::vector<torch::Tensor> interleaved, std::optional<torch::Tensor> sh_index,
+std::vector<at::Tensor> field_inference(at::Tensor x, at::Tensor sh, std::vector<at::Tensor> dense_a,
+                                           std::vector<at::Tensor> planes_a, std::vector<at::Tensor> mlp_a,
+                                           std::vector<at::Tensor> dense_b, std::vector<at::Tensor> planes_b,
+                                           std::vector<at::Tensor> mlp_b, double w_density, double w_color,
+                                           std::vector<at::Tensor> interleaved, std::optional<at::Tensor> sh_index,
                                            bool vector_path, bool bf16, bool amx, bool density_only) {
-  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32, "x must be (M, 3) float32");
+  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == at::kFloat, "x must be (M, 3) float32");
   const bool indexed = sh_index.has_value() && !density_only;
   TORCH_CHECK(sh.dim() == 2 && (indexed || density_only || sh.size(0) == x.size(0)) &&
-                  sh.scalar_type() == torch::kFloat32,
+                  sh.scalar_type() == at::kFloat,
               "sh must be (M, S) float32, or (R, S) with sh_index");
   x = x.contiguous();
   sh = sh.contiguous();
-  torch::Tensor sh_rows_index;
+  at::Tensor sh_rows_index;
   if (indexed) {           // sample i's direction features are sh[sh_index[i]] (one row per ray)
     sh_rows_index = sh_index->contiguous();
     TORCH_CHECK(sh_rows_index.dim() == 1 && sh_rows_index.size(0) == x.size(0) &&
-                    sh_rows_index.scalar_type() == torch::kInt64,
+                    sh_rows_index.scalar_type() == at::kLong,
                 "sh_index must be (M,) int64");
     if (x.size(0) > 0)
       TORCH_CHECK(sh_rows_index.min().item<int64_t>() >= 0 && sh_rows_index.max().item<int64_t>() < sh.size(0),
@@ -306,12 +306,12 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
     for (size_t k = 0; k < tables.size(); ++k)
       TORCH_CHECK(tables[k].res == tables_b[k].res && tables_b[k].channels == 2, "the two fields must have the same tables");
   }
-  std::vector<torch::Tensor> keep;
+  std::vector<at::Tensor> keep;
   std::vector<const float*> data_a, data_b;
   if (dual && !interleaved.empty()) {        // interleave_pair's tables: f_S's features at +0, f_D's at +2
     TORCH_CHECK(interleaved.size() == tables.size(), "field_inference: one interleaved table per table expected");
     for (size_t k = 0; k < tables.size(); ++k) {
-      TORCH_CHECK(interleaved[k].is_contiguous() && interleaved[k].scalar_type() == torch::kFloat32 &&
+      TORCH_CHECK(interleaved[k].is_contiguous() && interleaved[k].scalar_type() == at::kFloat &&
                       interleaved[k].numel() == 4 * table_cells(tables[k]),
                   "field_inference: interleaved tables must come from interleave_pair for these tables");
       tables[k].stride = 4;
@@ -329,8 +329,8 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
     for (int i = 0; i < 4; ++i)
       TORCH_CHECK(mlps_b.layer[i].in == mlps_a.layer[i].in && mlps_b.layer[i].out_pad == mlps_a.layer[i].out_pad,
                   "the two fields must have the same MLP shapes");
-  auto h_sigma = torch::empty({m}, x.options());
-  auto h_color = torch::empty({density_only ? 0 : m, 3}, x.options());
+  auto h_sigma = x.new_empty({m});
+  auto h_color = x.new_empty({density_only ? 0 : m, 3});
   const float *xp = x.data_ptr<float>(), *shp = sh.data_ptr<float>();
   float *sp = h_sigma.data_ptr<float>(), *cp = h_color.data_ptr<float>();
   // The coefficients rounded to float as torch rounds a Python scalar: (1 - w) in double first.
@@ -391,20 +391,20 @@ std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, st
 // interleave_pair into existing (cells, 4) tables `out` (from an earlier interleave_pair of the same table
 // sizes): the second field's features always, the first field's only with write_first. A render session
 // of a dual field keeps the frozen f_S's half and rewrites f_D's: half the copying, and no fresh pages.
-void interleave_pair_into(std::vector<torch::Tensor> out, std::vector<torch::Tensor> dense_a,
-                          std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> dense_b,
-                          std::vector<torch::Tensor> planes_b, bool write_first) {
+void interleave_pair_into(std::vector<at::Tensor> out, std::vector<at::Tensor> dense_a,
+                          std::vector<at::Tensor> planes_a, std::vector<at::Tensor> dense_b,
+                          std::vector<at::Tensor> planes_b, bool write_first) {
   const auto tables = describe(dense_a, planes_a);
   const auto tables_b = describe(dense_b, planes_b);
   TORCH_CHECK(tables.size() == tables_b.size() && out.size() == tables.size(),
               "interleave_pair: the two fields must have the same tables, and one output per table");
   for (size_t k = 0; k < tables.size(); ++k)
     TORCH_CHECK(tables[k].res == tables_b[k].res && tables[k].channels == 2 && tables_b[k].channels == 2 &&
-                    out[k].scalar_type() == torch::kFloat32 && out[k].is_contiguous() &&
+                    out[k].scalar_type() == at::kFloat && out[k].is_contiguous() &&
                     out[k].numel() == 4 * table_cells(tables[k]),
                 "interleave_pair: the two fields must have the same tables, with 2 features each, and each "
                 "output 4 floats per cell");
-  std::vector<torch::Tensor> keep;
+  std::vector<at::Tensor> keep;
   const auto data_a = table_data(dense_a, planes_a, keep);
   const auto data_b = table_data(dense_b, planes_b, keep);
   for (size_t k = 0; k < tables.size(); ++k) {
@@ -423,27 +423,28 @@ void interleave_pair_into(std::vector<torch::Tensor> out, std::vector<torch::Ten
   }
 }
 
-std::vector<torch::Tensor> interleave_pair(std::vector<torch::Tensor> dense_a, std::vector<torch::Tensor> planes_a,
-                                           std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b) {
-  std::vector<torch::Tensor> out;
-  for (const auto& t : describe(dense_a, planes_a)) out.push_back(torch::empty({4 * table_cells(t)}, torch::kFloat32));
+std::vector<at::Tensor> interleave_pair(std::vector<at::Tensor> dense_a, std::vector<at::Tensor> planes_a,
+                                           std::vector<at::Tensor> dense_b, std::vector<at::Tensor> planes_b) {
+  std::vector<at::Tensor> out;
+  for (const auto& t : describe(dense_a, planes_a))
+    out.push_back((dense_a.empty() ? planes_a : dense_a).front().new_empty({4 * table_cells(t)}));
   interleave_pair_into(out, dense_a, planes_a, dense_b, planes_b, true);
   return out;
 }
 
 // The MLPs alone on given features (the frozen f_S in a dual-field training step, whose look-ups the
 // pair kernel already did): (h_sigma (M,), h_color (M, 3)), as field_inference computes them.
-std::vector<torch::Tensor> mlp_inference(torch::Tensor features, torch::Tensor sh, std::vector<torch::Tensor> mlp,
+std::vector<at::Tensor> mlp_inference(at::Tensor features, at::Tensor sh, std::vector<at::Tensor> mlp,
                                          bool vector_path) {
-  TORCH_CHECK(features.dim() == 2 && features.scalar_type() == torch::kFloat32 && sh.dim() == 2 &&
-                  sh.size(0) == features.size(0) && sh.scalar_type() == torch::kFloat32,
+  TORCH_CHECK(features.dim() == 2 && features.scalar_type() == at::kFloat && sh.dim() == 2 &&
+                  sh.size(0) == features.size(0) && sh.scalar_type() == at::kFloat,
               "mlp_inference: (M, F) features and (M, S) sh, float32");
   features = features.contiguous();
   sh = sh.contiguous();
   const int64_t m = features.size(0), n_features = features.size(1), n_sh = sh.size(1);
   const FieldMlps mlps = describe_mlps(mlp, n_features, n_sh);
-  auto h_sigma = torch::empty({m}, features.options());
-  auto h_color = torch::empty({m, 3}, features.options());
+  auto h_sigma = features.new_empty({m});
+  auto h_color = features.new_empty({m, 3});
   const float *fp = features.data_ptr<float>(), *shp = sh.data_ptr<float>();
   float *sp = h_sigma.data_ptr<float>(), *cp = h_color.data_ptr<float>();
   parallel_for(0, (m + kInferBlock - 1) / kInferBlock, 1, [&](int64_t block_begin, int64_t block_end) {

@@ -8,7 +8,10 @@
 // the code asks for it; that is what keeps each kernel bit-for-bit equal to the torch code it states.
 #pragma once
 
-#include <torch/types.h>   // ATen and the torch:: names; module.cpp adds the Python bindings
+// at::Tensor and its methods only (outputs come from x.new_empty): ~4 s of parsing per file on a slow
+// core instead of ~15 s for <torch/types.h> or ~9 s with the per-operator factory headers; module.cpp adds
+// the Python bindings.
+#include <ATen/core/Tensor.h>
 
 #include <omp.h>
 
@@ -144,7 +147,7 @@ struct Table {
   int64_t column;
 };
 
-inline std::vector<Table> describe(const std::vector<torch::Tensor>& dense, const std::vector<torch::Tensor>& planes) {
+inline std::vector<Table> describe(const std::vector<at::Tensor>& dense, const std::vector<at::Tensor>& planes) {
   static const int axes[3][2] = {{0, 1}, {0, 2}, {1, 2}};
   std::vector<Table> tables;
   int64_t column = 0;
@@ -163,10 +166,10 @@ inline std::vector<Table> describe(const std::vector<torch::Tensor>& dense, cons
   return tables;
 }
 
-inline std::vector<torch::Tensor> channels_last(const std::vector<torch::Tensor>& tensors, bool dense) {
-  std::vector<torch::Tensor> out;
+inline std::vector<at::Tensor> channels_last(const std::vector<at::Tensor>& tensors, bool dense) {
+  std::vector<at::Tensor> out;
   for (const auto& t : tensors) {
-    TORCH_CHECK(t.scalar_type() == torch::kFloat32 && t.device().is_cpu(), "tables must be float32 CPU tensors");
+    TORCH_CHECK(t.scalar_type() == at::kFloat && t.device().is_cpu(), "tables must be float32 CPU tensors");
     out.push_back(t.contiguous(dense ? at::MemoryFormat::ChannelsLast3d : at::MemoryFormat::ChannelsLast));
   }
   return out;
@@ -180,8 +183,8 @@ inline int64_t total_columns(const std::vector<Table>& tables) {
 
 // Channels-last copies of the tables (no copy when they are stored so) appended to `keep`, which holds
 // them alive while the kernel reads their data pointers.
-inline std::vector<const float*> table_data(const std::vector<torch::Tensor>& dense, const std::vector<torch::Tensor>& planes,
-                                     std::vector<torch::Tensor>& keep) {
+inline std::vector<const float*> table_data(const std::vector<at::Tensor>& dense, const std::vector<at::Tensor>& planes,
+                                     std::vector<at::Tensor>& keep) {
   std::vector<const float*> data;
   for (auto& g : channels_last(dense, true)) { keep.push_back(g); data.push_back(g.data_ptr<float>()); }
   for (auto& p : channels_last(planes, false)) { keep.push_back(p); data.push_back(p.data_ptr<float>()); }
@@ -310,61 +313,61 @@ void lookup_range(const std::vector<Table>& tables, const std::vector<const floa
 // The functions module.cpp binds, each defined and documented in the file named above it.
 
 // lookups.cpp
-torch::Tensor encode_forward(torch::Tensor x, std::vector<torch::Tensor> dense, std::vector<torch::Tensor> planes,
+at::Tensor encode_forward(at::Tensor x, std::vector<at::Tensor> dense, std::vector<at::Tensor> planes,
                              bool vector_path);
-std::vector<torch::Tensor> encode_forward_pair(torch::Tensor x, std::vector<torch::Tensor> dense_a,
-                                               std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> dense_b,
-                                               std::vector<torch::Tensor> planes_b, bool vector_path);
-std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
-                                           std::vector<torch::Tensor> planes, bool vector_path);
-void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
-                          std::vector<torch::Tensor> planes, std::vector<torch::Tensor> grads,
-                          std::vector<torch::Tensor> touched, bool vector_path);
-void zero_touched(torch::Tensor grad, torch::Tensor touched);
+std::vector<at::Tensor> encode_forward_pair(at::Tensor x, std::vector<at::Tensor> dense_a,
+                                               std::vector<at::Tensor> planes_a, std::vector<at::Tensor> dense_b,
+                                               std::vector<at::Tensor> planes_b, bool vector_path);
+std::vector<at::Tensor> encode_backward(at::Tensor x, at::Tensor grad_out, std::vector<at::Tensor> dense,
+                                           std::vector<at::Tensor> planes, bool vector_path);
+void encode_backward_into(at::Tensor x, at::Tensor grad_out, std::vector<at::Tensor> dense,
+                          std::vector<at::Tensor> planes, std::vector<at::Tensor> grads,
+                          std::vector<at::Tensor> touched, bool vector_path);
+void zero_touched(at::Tensor grad, at::Tensor touched);
 
 // inference.cpp
-std::vector<torch::Tensor> field_inference(torch::Tensor x, torch::Tensor sh, std::vector<torch::Tensor> dense_a,
-                                           std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> mlp_a,
-                                           std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b,
-                                           std::vector<torch::Tensor> mlp_b, double w_density, double w_color,
-                                           std::vector<torch::Tensor> interleaved, std::optional<torch::Tensor> sh_index,
+std::vector<at::Tensor> field_inference(at::Tensor x, at::Tensor sh, std::vector<at::Tensor> dense_a,
+                                           std::vector<at::Tensor> planes_a, std::vector<at::Tensor> mlp_a,
+                                           std::vector<at::Tensor> dense_b, std::vector<at::Tensor> planes_b,
+                                           std::vector<at::Tensor> mlp_b, double w_density, double w_color,
+                                           std::vector<at::Tensor> interleaved, std::optional<at::Tensor> sh_index,
                                            bool vector_path, bool bf16, bool amx, bool density_only);
-void interleave_pair_into(std::vector<torch::Tensor> out, std::vector<torch::Tensor> dense_a,
-                          std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> dense_b,
-                          std::vector<torch::Tensor> planes_b, bool write_first);
-std::vector<torch::Tensor> interleave_pair(std::vector<torch::Tensor> dense_a, std::vector<torch::Tensor> planes_a,
-                                           std::vector<torch::Tensor> dense_b, std::vector<torch::Tensor> planes_b);
-std::vector<torch::Tensor> mlp_inference(torch::Tensor features, torch::Tensor sh, std::vector<torch::Tensor> mlp,
+void interleave_pair_into(std::vector<at::Tensor> out, std::vector<at::Tensor> dense_a,
+                          std::vector<at::Tensor> planes_a, std::vector<at::Tensor> dense_b,
+                          std::vector<at::Tensor> planes_b, bool write_first);
+std::vector<at::Tensor> interleave_pair(std::vector<at::Tensor> dense_a, std::vector<at::Tensor> planes_a,
+                                           std::vector<at::Tensor> dense_b, std::vector<at::Tensor> planes_b);
+std::vector<at::Tensor> mlp_inference(at::Tensor features, at::Tensor sh, std::vector<at::Tensor> mlp,
                                          bool vector_path);
 bool vector_path_available();
 bool amx_path_available();
 
 // mlp_train.cpp
-std::vector<torch::Tensor> mlp_train_forward(torch::Tensor features, torch::Tensor sh,
-                                             std::optional<torch::Tensor> sh_index, std::vector<torch::Tensor> mlp,
+std::vector<at::Tensor> mlp_train_forward(at::Tensor features, at::Tensor sh,
+                                             std::optional<at::Tensor> sh_index, std::vector<at::Tensor> mlp,
                                              bool vector_path);
-std::vector<torch::Tensor> mlp_train_backward(torch::Tensor grad_sigma, torch::Tensor grad_color,
-                                              torch::Tensor features, torch::Tensor hidden_density,
-                                              torch::Tensor color_in, torch::Tensor hidden_color,
-                                              std::vector<torch::Tensor> mlp, std::vector<torch::Tensor> weights,
+std::vector<at::Tensor> mlp_train_backward(at::Tensor grad_sigma, at::Tensor grad_color,
+                                              at::Tensor features, at::Tensor hidden_density,
+                                              at::Tensor color_in, at::Tensor hidden_color,
+                                              std::vector<at::Tensor> mlp, std::vector<at::Tensor> weights,
                                               int64_t n_sh, bool vector_path);
 
 // adam.cpp
-void adam_step(torch::Tensor param, torch::Tensor grad, torch::Tensor exp_avg, torch::Tensor exp_avg_sq, double beta1,
+void adam_step(at::Tensor param, at::Tensor grad, at::Tensor exp_avg, at::Tensor exp_avg_sq, double beta1,
                double beta2, double step_size, double bias_correction2_sqrt, double eps, bool skip_zero);
-void adam_step_touched(torch::Tensor param, torch::Tensor grad, torch::Tensor touched, torch::Tensor exp_avg,
-                       torch::Tensor exp_avg_sq, double beta1, double beta2, double step_size,
+void adam_step_touched(at::Tensor param, at::Tensor grad, at::Tensor touched, at::Tensor exp_avg,
+                       at::Tensor exp_avg_sq, double beta1, double beta2, double step_size,
                        double bias_correction2_sqrt, double eps);
 
 // sampler.cpp
-std::vector<torch::Tensor> ray_samples(torch::Tensor origins, torch::Tensor dirs, torch::Tensor t_start,
-                                       torch::Tensor t_end, torch::Tensor density, torch::Tensor mask, double scale,
+std::vector<at::Tensor> ray_samples(at::Tensor origins, at::Tensor dirs, at::Tensor t_start,
+                                       at::Tensor t_end, at::Tensor density, at::Tensor mask, double scale,
                                        int64_t n_proposal, int64_t n_samples, double uniform_share,
-                                       torch::Tensor jitter, bool vector_path);
+                                       at::Tensor jitter, bool vector_path);
 
 // composite.cpp
-std::vector<torch::Tensor> occupied_samples(torch::Tensor origins, torch::Tensor dirs, torch::Tensor t,
-                                            torch::Tensor mask);
-std::vector<torch::Tensor> composite_rays(torch::Tensor h_sigma, torch::Tensor h_color, torch::Tensor flat,
-                                          torch::Tensor starts, torch::Tensor delta, torch::Tensor background,
+std::vector<at::Tensor> occupied_samples(at::Tensor origins, at::Tensor dirs, at::Tensor t,
+                                            at::Tensor mask);
+std::vector<at::Tensor> composite_rays(at::Tensor h_sigma, at::Tensor h_color, at::Tensor flat,
+                                          at::Tensor starts, at::Tensor delta, at::Tensor background,
                                           double max_h_sigma, bool vector_path);

@@ -432,18 +432,18 @@ void dualnerf::lookup_range(const std::vector<Table>& tables, const std::vector<
 }
 
 
-torch::Tensor encode_forward(torch::Tensor x, std::vector<torch::Tensor> dense, std::vector<torch::Tensor> planes,
+at::Tensor encode_forward(at::Tensor x, std::vector<at::Tensor> dense, std::vector<at::Tensor> planes,
                              bool vector_path) {
-  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32, "x must be (M, 3) float32");
+  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == at::kFloat, "x must be (M, 3) float32");
   x = x.contiguous();
   const auto tables = describe(dense, planes);
   for (const auto& t : tables)
     TORCH_CHECK(t.channels == 1 || t.channels == 2 || t.channels == 4 || t.channels == 8,
                 "grid encoding kernel: features per table must be 1, 2, 4 or 8");
-  std::vector<torch::Tensor> keep;
+  std::vector<at::Tensor> keep;
   const auto data = table_data(dense, planes, keep);
   const int64_t m = x.size(0), n_out = total_columns(tables);
-  auto out = torch::empty({m, n_out}, x.options());
+  auto out = x.new_empty({m, n_out});
   const float* xp = x.data_ptr<float>();
   float* op = out.data_ptr<float>();
   for_each_block(m, [&](int64_t begin, int64_t end) {
@@ -452,10 +452,10 @@ torch::Tensor encode_forward(torch::Tensor x, std::vector<torch::Tensor> dense, 
   return out;
 }
 
-std::vector<torch::Tensor> encode_forward_pair(torch::Tensor x, std::vector<torch::Tensor> dense_a,
-                                               std::vector<torch::Tensor> planes_a, std::vector<torch::Tensor> dense_b,
-                                               std::vector<torch::Tensor> planes_b, bool vector_path) {
-  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == torch::kFloat32, "x must be (M, 3) float32");
+std::vector<at::Tensor> encode_forward_pair(at::Tensor x, std::vector<at::Tensor> dense_a,
+                                               std::vector<at::Tensor> planes_a, std::vector<at::Tensor> dense_b,
+                                               std::vector<at::Tensor> planes_b, bool vector_path) {
+  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == at::kFloat, "x must be (M, 3) float32");
   x = x.contiguous();
   const auto tables = describe(dense_a, planes_a);
   const auto tables_b = describe(dense_b, planes_b);
@@ -464,12 +464,12 @@ std::vector<torch::Tensor> encode_forward_pair(torch::Tensor x, std::vector<torc
     TORCH_CHECK(tables[k].res == tables_b[k].res && tables[k].channels == tables_b[k].channels &&
                     tables[k].channels == 2,
                 "the two fields must have the same tables, with 2 features each (pair kernel)");
-  std::vector<torch::Tensor> keep;
+  std::vector<at::Tensor> keep;
   const auto data_a = table_data(dense_a, planes_a, keep);
   const auto data_b = table_data(dense_b, planes_b, keep);
   const int64_t m = x.size(0), n_out = total_columns(tables);
-  auto out_a = torch::empty({m, n_out}, x.options());
-  auto out_b = torch::empty({m, n_out}, x.options());
+  auto out_a = x.new_empty({m, n_out});
+  auto out_b = x.new_empty({m, n_out});
   const float* xp = x.data_ptr<float>();
   float* oa = out_a.data_ptr<float>();
   float* ob = out_b.data_ptr<float>();
@@ -540,26 +540,26 @@ void accumulate_gradients(const std::vector<Table>& tables, const float* xp, con
 
 // What both backward entry points check and read: contiguous points and output gradients, the tables.
 struct BackwardInputs {
-  torch::Tensor x, grad_out;
+  at::Tensor x, grad_out;
   std::vector<Table> tables;
   int64_t m, n_out;
-  BackwardInputs(const torch::Tensor& points, const torch::Tensor& grad, const std::vector<torch::Tensor>& dense,
-                 const std::vector<torch::Tensor>& planes)
+  BackwardInputs(const at::Tensor& points, const at::Tensor& grad, const std::vector<at::Tensor>& dense,
+                 const std::vector<at::Tensor>& planes)
       : x(points.contiguous()), grad_out(grad.contiguous()), tables(describe(dense, planes)), m(x.size(0)),
         n_out(total_columns(tables)) {
     TORCH_CHECK(grad_out.size(0) == m && grad_out.size(1) == n_out, "grad_out must be (M, total features)");
   }
 };
 
-std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
-                                           std::vector<torch::Tensor> planes, bool vector_path) {
+std::vector<at::Tensor> encode_backward(at::Tensor x, at::Tensor grad_out, std::vector<at::Tensor> dense,
+                                           std::vector<at::Tensor> planes, bool vector_path) {
   const BackwardInputs in(x, grad_out, dense, planes);
   const auto& tables = in.tables;
   // Gradients in the parameters' own shape, channels-last like the tables (the kernel's write order).
-  std::vector<torch::Tensor> grads;
+  std::vector<at::Tensor> grads;
   std::vector<float*> data;
-  for (auto& g : dense) grads.push_back(torch::zeros_like(g, at::MemoryFormat::ChannelsLast3d));
-  for (auto& p : planes) grads.push_back(torch::zeros_like(p, at::MemoryFormat::ChannelsLast));
+  for (auto& g : dense) grads.push_back(g.new_empty({0}).resize_(g.sizes(), at::MemoryFormat::ChannelsLast3d).zero_());
+  for (auto& p : planes) grads.push_back(p.new_empty({0}).resize_(p.sizes(), at::MemoryFormat::ChannelsLast).zero_());
   for (auto& g : grads) data.push_back(g.data_ptr<float>());
   accumulate_gradients(tables, in.x.data_ptr<float>(), in.grad_out.data_ptr<float>(), in.m, in.n_out, data, {},
                        vector_path);
@@ -569,21 +569,21 @@ std::vector<torch::Tensor> encode_backward(torch::Tensor x, torch::Tensor grad_o
 // The backward of encode_forward into persistent gradient buffers (dualnerf.kernels.TableGradients)
 // instead of freshly zero-filled tensors: adds to grads[k] exactly as encode_backward does (a zeroed
 // buffer ends up with the same bits) and flags the touched chunks in touched[k].
-void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<torch::Tensor> dense,
-                          std::vector<torch::Tensor> planes, std::vector<torch::Tensor> grads,
-                          std::vector<torch::Tensor> touched, bool vector_path) {
+void encode_backward_into(at::Tensor x, at::Tensor grad_out, std::vector<at::Tensor> dense,
+                          std::vector<at::Tensor> planes, std::vector<at::Tensor> grads,
+                          std::vector<at::Tensor> touched, bool vector_path) {
   const BackwardInputs in(x, grad_out, dense, planes);
   const auto& tables = in.tables;
   TORCH_CHECK(grads.size() == tables.size() && touched.size() == tables.size(), "one buffer per table expected");
-  std::vector<torch::Tensor> layout = channels_last(dense, true);
+  std::vector<at::Tensor> layout = channels_last(dense, true);
   for (auto& p : channels_last(planes, false)) layout.push_back(p);
   std::vector<float*> data;
   std::vector<uint8_t*> flags;
   for (size_t k = 0; k < tables.size(); ++k) {
-    TORCH_CHECK(grads[k].scalar_type() == torch::kFloat32 && grads[k].strides() == layout[k].strides() &&
+    TORCH_CHECK(grads[k].scalar_type() == at::kFloat && grads[k].strides() == layout[k].strides() &&
                     grads[k].sizes() == layout[k].sizes(),
                 "gradient buffers must be float32 and laid out like their (channels-last) table");
-    TORCH_CHECK(touched[k].scalar_type() == torch::kUInt8 && touched[k].is_contiguous() &&
+    TORCH_CHECK(touched[k].scalar_type() == at::kByte && touched[k].is_contiguous() &&
                     touched[k].numel() == (grads[k].numel() + kTouchChunk - 1) / kTouchChunk,
                 "touched flags must be uint8, one per ", kTouchChunk, " gradient values");
     data.push_back(grads[k].data_ptr<float>());
@@ -595,9 +595,9 @@ void encode_backward_into(torch::Tensor x, torch::Tensor grad_out, std::vector<t
 
 
 // Zeroes the flagged chunks of a gradient buffer and their flags (a TableGradients reset).
-void zero_touched(torch::Tensor grad, torch::Tensor touched) {
-  TORCH_CHECK(grad.scalar_type() == torch::kFloat32 && grad.is_non_overlapping_and_dense() &&
-                  touched.scalar_type() == torch::kUInt8 && touched.numel() == (grad.numel() + kTouchChunk - 1) / kTouchChunk,
+void zero_touched(at::Tensor grad, at::Tensor touched) {
+  TORCH_CHECK(grad.scalar_type() == at::kFloat && grad.is_non_overlapping_and_dense() &&
+                  touched.scalar_type() == at::kByte && touched.numel() == (grad.numel() + kTouchChunk - 1) / kTouchChunk,
               "zero_touched: a float32 buffer and one uint8 flag per ", kTouchChunk, " values expected");
   float* g = grad.data_ptr<float>();
   uint8_t* flags = touched.data_ptr<uint8_t>();

@@ -31,13 +31,13 @@ struct Mlp {
   int n_sh, geo;
 };
 
-Mlp describe_train_mlp(const std::vector<torch::Tensor>& t, int64_t n_features, int64_t n_sh) {
+Mlp describe_train_mlp(const std::vector<at::Tensor>& t, int64_t n_features, int64_t n_sh) {
   TORCH_CHECK(t.size() == 8, "mlp_train: 8 MLP tensors expected (wt, b for 4 layers)");
   Mlp m;
   for (int i = 0; i < 4; ++i) {
     const auto& wt = t[2 * i];
     const auto& b = t[2 * i + 1];
-    TORCH_CHECK(wt.dim() == 2 && wt.is_contiguous() && wt.scalar_type() == torch::kFloat32 && b.dim() == 1 &&
+    TORCH_CHECK(wt.dim() == 2 && wt.is_contiguous() && wt.scalar_type() == at::kFloat && b.dim() == 1 &&
                     b.is_contiguous() && b.size(0) == wt.size(1) && wt.size(1) % kLanes == 0 &&
                     wt.size(1) <= 8 * kLanes,
                 "mlp_train: layer weights must be contiguous float32 (in, out padded to 16, <= 128) with a bias");
@@ -342,19 +342,19 @@ const float* sh_row(const float* sh, const int64_t* sh_index, int64_t i, int n_s
 // (h_sigma (M,), h_color (M, 3), hidden_density (M, H0p), color_in (M, geo + S), hidden_color (M, H2p)):
 // the MLPs' outputs and the activations mlp_train_backward reads. Row i's direction features are
 // sh[i], or sh[sh_index[i]] with an index (one row per ray).
-std::vector<torch::Tensor> mlp_train_forward(torch::Tensor features, torch::Tensor sh,
-                                             std::optional<torch::Tensor> sh_index, std::vector<torch::Tensor> mlp,
+std::vector<at::Tensor> mlp_train_forward(at::Tensor features, at::Tensor sh,
+                                             std::optional<at::Tensor> sh_index, std::vector<at::Tensor> mlp,
                                              bool vector_path) {
-  TORCH_CHECK(features.dim() == 2 && features.scalar_type() == torch::kFloat32 && features.device().is_cpu() &&
-                  sh.dim() == 2 && sh.scalar_type() == torch::kFloat32,
+  TORCH_CHECK(features.dim() == 2 && features.scalar_type() == at::kFloat && features.device().is_cpu() &&
+                  sh.dim() == 2 && sh.scalar_type() == at::kFloat,
               "mlp_train_forward: (M, F) features and (M or R, S) sh, float32 CPU");
   features = features.contiguous();
   sh = sh.contiguous();
   const int64_t m = features.size(0), n_features = features.size(1), n_sh = sh.size(1);
-  torch::Tensor index;
+  at::Tensor index;
   if (sh_index.has_value()) {
     index = sh_index->contiguous();
-    TORCH_CHECK(index.dim() == 1 && index.size(0) == m && index.scalar_type() == torch::kInt64,
+    TORCH_CHECK(index.dim() == 1 && index.size(0) == m && index.scalar_type() == at::kLong,
                 "mlp_train_forward: sh_index must be (M,) int64");
     if (m > 0)
       TORCH_CHECK(index.min().item<int64_t>() >= 0 && index.max().item<int64_t>() < sh.size(0),
@@ -365,17 +365,16 @@ std::vector<torch::Tensor> mlp_train_forward(torch::Tensor features, torch::Tens
   const Mlp net = describe_train_mlp(mlp, n_features, n_sh);
   const Layer* l = net.layer;
   const int64_t ld_h1 = l[0].out_pad, ld_c = l[2].in, ld_h2 = l[2].out_pad;
-  auto opts = features.options();
-  auto h_sigma = torch::empty({m}, opts);
-  auto h_color = torch::empty({m, 3}, opts);
+  auto h_sigma = features.new_empty({m});
+  auto h_color = features.new_empty({m, 3});
   // The hidden activations' padding columns (width not a multiple of 16) must read as zeros in the
   // backward; every other entry is written below, so without padding the zero fill (two (M, 64) memsets,
   // ~4% of a training step) is skipped.
   auto hidden = [&](const Layer& layer, int64_t ld) {
-    return layer.out == ld ? torch::empty({m, ld}, opts) : torch::zeros({m, ld}, opts);
+    return layer.out == ld ? features.new_empty({m, ld}) : features.new_zeros({m, ld});
   };
   auto hidden_density = hidden(l[0], ld_h1);
-  auto color_in = torch::empty({m, ld_c}, opts);
+  auto color_in = features.new_empty({m, ld_c});
   auto hidden_color = hidden(l[2], ld_h2);
   const float *fp = features.data_ptr<float>(), *shp = sh.data_ptr<float>();
   const int64_t* ip = index.defined() ? index.data_ptr<int64_t>() : nullptr;
@@ -408,10 +407,10 @@ std::vector<torch::Tensor> mlp_train_forward(torch::Tensor features, torch::Tens
 // and the bias gradient (out,), as the nn.Linear parameters).
 // mlp: the forward layout (as mlp_train_forward); weights: each layer's nn.Linear weight zero-padded to
 // (out, in_pad) (dx = dy W).
-std::vector<torch::Tensor> mlp_train_backward(torch::Tensor grad_sigma, torch::Tensor grad_color,
-                                              torch::Tensor features, torch::Tensor hidden_density,
-                                              torch::Tensor color_in, torch::Tensor hidden_color,
-                                              std::vector<torch::Tensor> mlp, std::vector<torch::Tensor> weights,
+std::vector<at::Tensor> mlp_train_backward(at::Tensor grad_sigma, at::Tensor grad_color,
+                                              at::Tensor features, at::Tensor hidden_density,
+                                              at::Tensor color_in, at::Tensor hidden_color,
+                                              std::vector<at::Tensor> mlp, std::vector<at::Tensor> weights,
                                               int64_t n_sh, bool vector_path) {
   const int64_t m = features.size(0), n_features = features.size(1);
   const Mlp net = describe_train_mlp(mlp, n_features, n_sh);
@@ -421,13 +420,13 @@ std::vector<torch::Tensor> mlp_train_backward(torch::Tensor grad_sigma, torch::T
   std::vector<float> zeros(8 * kLanes, 0.0f);
   for (int i = 0; i < 4; ++i) {
     const auto& w = weights[i];
-    TORCH_CHECK(w.dim() == 2 && w.is_contiguous() && w.scalar_type() == torch::kFloat32 &&
+    TORCH_CHECK(w.dim() == 2 && w.is_contiguous() && w.scalar_type() == at::kFloat &&
                     w.size(0) == l[i].out && w.size(1) == padded(l[i].in) && w.size(1) <= 8 * kLanes,
                 "mlp_train_backward: weight ", i, " must be its (out, in padded to 16) nn.Linear weight");
     back[i] = {w.data_ptr<float>(), zeros.data(), l[i].out, l[i].in, static_cast<int>(w.size(1))};
   }
   for (const auto* t : {&grad_sigma, &grad_color, &hidden_density, &color_in, &hidden_color})
-    TORCH_CHECK(t->scalar_type() == torch::kFloat32 && t->size(0) == m, "mlp_train_backward: float32, M rows");
+    TORCH_CHECK(t->scalar_type() == at::kFloat && t->size(0) == m, "mlp_train_backward: float32, M rows");
   grad_sigma = grad_sigma.contiguous();
   grad_color = grad_color.contiguous();
   features = features.contiguous();
@@ -448,8 +447,8 @@ std::vector<torch::Tensor> mlp_train_backward(torch::Tensor grad_sigma, torch::T
     size += l[i].out_pad;
   }
   const int64_t n_groups = std::max<int64_t>(1, (m + kGradGroup - 1) / kGradGroup);
-  auto partial = torch::zeros({n_groups, size}, features.options());
-  auto grad_features = torch::empty({m, n_features}, features.options());
+  auto partial = features.new_zeros({n_groups, size});
+  auto grad_features = features.new_empty({m, n_features});
   const float *gs = grad_sigma.data_ptr<float>(), *gc = grad_color.data_ptr<float>(),
               *fp = features.data_ptr<float>(), *h1 = hidden_density.data_ptr<float>(),
               *ci = color_in.data_ptr<float>(), *h2 = hidden_color.data_ptr<float>();
@@ -506,7 +505,7 @@ std::vector<torch::Tensor> mlp_train_backward(torch::Tensor grad_sigma, torch::T
     }
   });
   // (out, in) weight and (out,) bias gradients, as the nn.Linear parameters.
-  std::vector<torch::Tensor> out{grad_features};
+  std::vector<at::Tensor> out{grad_features};
   for (int i = 0; i < 4; ++i) {
     auto weight = total.narrow(0, offset[2 * i], offset[2 * i + 1] - offset[2 * i]);
     weight = by_inputs[i] ? weight.view({l[i].out, padded(l[i].in)}).narrow(1, 0, l[i].in)

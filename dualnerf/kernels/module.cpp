@@ -1,4 +1,4 @@
-#include <torch/extension.h>
+#include <torch/python.h>   // pybind11 and the tensor casters, without all of libtorch's C++ API (torch/extension.h)
 
 #include "kernels.h"
 

@@ -292,13 +292,13 @@ void place_samples(const SamplerInputs& in, int64_t i, const float* pdf, const f
   }
 }
 
-std::vector<torch::Tensor> ray_samples(torch::Tensor origins, torch::Tensor dirs, torch::Tensor t_start,
-                                       torch::Tensor t_end, torch::Tensor density, torch::Tensor mask, double scale,
+std::vector<at::Tensor> ray_samples(at::Tensor origins, at::Tensor dirs, at::Tensor t_start,
+                                       at::Tensor t_end, at::Tensor density, at::Tensor mask, double scale,
                                        int64_t n_proposal, int64_t n_samples, double uniform_share,
-                                       torch::Tensor jitter, bool vector_path) {
+                                       at::Tensor jitter, bool vector_path) {
   for (const auto* x : {&origins, &dirs, &t_start, &t_end, &density})
-    TORCH_CHECK(x->scalar_type() == torch::kFloat32 && x->device().is_cpu(), "ray_samples: float32 CPU tensors expected");
-  TORCH_CHECK(mask.scalar_type() == torch::kBool && mask.sizes() == density.sizes(), "ray_samples: bool mask like density");
+    TORCH_CHECK(x->scalar_type() == at::kFloat && x->device().is_cpu(), "ray_samples: float32 CPU tensors expected");
+  TORCH_CHECK(mask.scalar_type() == at::kBool && mask.sizes() == density.sizes(), "ray_samples: bool mask like density");
   TORCH_CHECK(n_proposal >= 1 && n_samples >= 1, "ray_samples: at least one proposal bin and one sample");
   origins = origins.contiguous();
   dirs = dirs.contiguous();
@@ -310,12 +310,12 @@ std::vector<torch::Tensor> ray_samples(torch::Tensor origins, torch::Tensor dirs
   const bool jittered = jitter.numel() > 0;
   if (jittered) {
     jitter = jitter.contiguous();
-    TORCH_CHECK(jitter.scalar_type() == torch::kFloat32 && jitter.size(0) == n_rays && jitter.size(1) == S - 1,
+    TORCH_CHECK(jitter.scalar_type() == at::kFloat && jitter.size(0) == n_rays && jitter.size(1) == S - 1,
                 "ray_samples: jitter must be (rays, samples - 1) float32");
   }
-  auto t = torch::empty({n_rays, S}, t_start.options());
-  auto delta = torch::empty({n_rays, S}, t_start.options());
-  auto occupied = torch::empty({n_rays, S}, mask.options());
+  auto t = t_start.new_empty({n_rays, S});
+  auto delta = t_start.new_empty({n_rays, S});
+  auto occupied = mask.new_empty({n_rays, S});
   const SamplerInputs in{origins.data_ptr<float>(), dirs.data_ptr<float>(), t_start.data_ptr<float>(),
                          t_end.data_ptr<float>(), density.data_ptr<float>(),
                          jittered ? jitter.data_ptr<float>() : nullptr, mask.data_ptr<bool>(), r, P, S,
