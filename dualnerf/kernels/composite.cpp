@@ -87,6 +87,31 @@ void composite_ray_scalar(const RayComposite& c, int64_t r) {
   for (int a = 0; a < 3; ++a) c.color[3 * r + a] = rgb[a] + (1.0f - weight_sum) * c.bg[3 * r + a];
 }
 
+// The sequential sums of the vector code (composite_ray_avx512, composite_ray_avx2), in sample order as in
+// composite_ray_scalar: w[s] = tau[s] - cumsum(tau)[s] (the sum in double), exponentiated by the caller.
+inline void transmittance_exponents(const float* tau, float* w, int64_t S) {
+  double cumulative = 0.0;
+  for (int64_t s = 0; s < S; ++s) {
+    cumulative += static_cast<double>(tau[s]);
+    w[s] = tau[s] - static_cast<float>(cumulative);
+  }
+}
+
+// Ray r's opacity (its weights w summed in sample order) and colour (w times the sigmoid colours rgb of its
+// evaluated samples, 3 each, plus the background's share), as composite_ray_scalar sums them.
+inline void finish_ray(const RayComposite& c, int64_t r, const float* w, const float* rgb) {
+  const int64_t S = c.S, first = c.st[r], stop = c.st[r + 1];
+  float opacity = 0.0f;
+  for (int64_t s = 0; s < S; ++s) opacity += w[s];
+  float out[3] = {0.0f, 0.0f, 0.0f};
+  for (int64_t j = first; j < stop; ++j) {
+    const float weight = w[c.fp[j] - r * S];
+    for (int a = 0; a < 3; ++a) out[a] += weight * rgb[3 * (j - first) + a];
+  }
+  c.opacity[r] = opacity;
+  for (int a = 0; a < 3; ++a) c.color[3 * r + a] = out[a] + (1.0f - opacity) * c.bg[3 * r + a];
+}
+
 #ifdef DUALNERF_HAVE_AVX512
 // composite_ray_scalar's operations 16 samples at a time (exp16 is exp_scalar's vector form; the
 // cumulative sum and the opacity stay sequential sums in sample order): the same bits.
@@ -110,18 +135,12 @@ __attribute__((target("avx512f"))) void composite_ray_avx512(const RayComposite&
     _mm512_storeu_ps(tau + s, t);
     _mm512_storeu_ps(alpha + s, _mm512_sub_ps(one, exp16(_mm512_sub_ps(_mm512_setzero_ps(), t))));
   }
-  double cumulative = 0.0;
-  for (int64_t s = 0; s < S; ++s) {
-    cumulative += static_cast<double>(tau[s]);
-    w[s] = tau[s] - static_cast<float>(cumulative);          // -(cumsum - tau), exponentiated below
-  }
+  transmittance_exponents(tau, w, S);
   for (int64_t s = 0; s < S_pad; s += kLanes) {
     const int64_t left = S - s;
     const __mmask16 lanes = first_lanes(left);
     _mm512_storeu_ps(w + s, _mm512_maskz_mul_ps(lanes, exp16(_mm512_loadu_ps(w + s)), _mm512_loadu_ps(alpha + s)));
   }
-  float opacity = 0.0f;
-  for (int64_t s = 0; s < S; ++s) opacity += w[s];
   const int64_t n_color = 3 * (stop - first);
   for (int64_t k = 0; k < n_color; k += kLanes) {
     const int64_t left = n_color - k;
@@ -130,13 +149,7 @@ __attribute__((target("avx512f"))) void composite_ray_avx512(const RayComposite&
     _mm512_mask_storeu_ps(rgb + k, lanes,
                           _mm512_div_ps(one, _mm512_add_ps(one, exp16(_mm512_sub_ps(_mm512_setzero_ps(), x)))));
   }
-  float out[3] = {0.0f, 0.0f, 0.0f};
-  for (int64_t j = first; j < stop; ++j) {
-    const float weight = w[c.fp[j] - r * S];
-    for (int a = 0; a < 3; ++a) out[a] += weight * rgb[3 * (j - first) + a];
-  }
-  c.opacity[r] = opacity;
-  for (int a = 0; a < 3; ++a) c.color[3 * r + a] = out[a] + (1.0f - opacity) * c.bg[3 * r + a];
+  finish_ray(c, r, w, rgb);
 }
 #endif
 
@@ -163,30 +176,18 @@ void composite_ray_avx2(const RayComposite& c, int64_t r, float* buf) {
     _mm256_storeu_ps(tau + s, t);
     _mm256_storeu_ps(alpha + s, _mm256_sub_ps(one, exp8(_mm256_sub_ps(zero, t))));
   }
-  double cumulative = 0.0;
-  for (int64_t s = 0; s < S; ++s) {
-    cumulative += static_cast<double>(tau[s]);
-    w[s] = tau[s] - static_cast<float>(cumulative);          // -(cumsum - tau), exponentiated below
-  }
+  transmittance_exponents(tau, w, S);
   for (int64_t s = 0; s < S; s += 8) {
     const __m256 lanes = _mm256_castsi256_ps(first_lanes8(S - s));
     _mm256_storeu_ps(w + s, _mm256_and_ps(lanes, _mm256_mul_ps(exp8(_mm256_loadu_ps(w + s)), _mm256_loadu_ps(alpha + s))));
   }
-  float opacity = 0.0f;
-  for (int64_t s = 0; s < S; ++s) opacity += w[s];
   const int64_t n_color = 3 * (stop - first);
   for (int64_t k = 0; k < n_color; k += 8) {
     const __m256i lanes = first_lanes8(n_color - k);
     const __m256 x = _mm256_maskload_ps(c.hc + 3 * first + k, lanes);
     _mm256_maskstore_ps(rgb + k, lanes, _mm256_div_ps(one, _mm256_add_ps(one, exp8(_mm256_sub_ps(zero, x)))));
   }
-  float out[3] = {0.0f, 0.0f, 0.0f};
-  for (int64_t j = first; j < stop; ++j) {
-    const float weight = w[c.fp[j] - r * S];
-    for (int a = 0; a < 3; ++a) out[a] += weight * rgb[3 * (j - first) + a];
-  }
-  c.opacity[r] = opacity;
-  for (int a = 0; a < 3; ++a) c.color[3 * r + a] = out[a] + (1.0f - opacity) * c.bg[3 * r + a];
+  finish_ray(c, r, w, rgb);
 }
 #endif
 
