@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCE = ("dualnerf", "pipeline", "stages", "experiments")
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 # Flags of other programs that the docs show in full commands.
-OTHER_TOOLS_FLAGS = {"--no-deps", "--upgrade", "--force-reinstall", "--help", "--version", "--collect-only",
+OTHER_TOOLS_FLAGS = {"--no-deps", "--no-compile", "--upgrade", "--force-reinstall", "--help", "--version", "--collect-only",
                      # ray start / ray status (docs/cluster.md and the cluster probe's messages)
                      "--head", "--address", "--port", "--num-cpus", "--num-gpus", "--block", "--temp-dir",
                      # pytest-xdist's scheduler (the Makefile's test command) and py-spy (docs/benchmarks.md)
