@@ -11,7 +11,7 @@ using namespace dualnerf;
 // torch's exp and sums round differently, so the two agree to float32 rounding (tests/test_render_kernels.py);
 // the AVX-512, AVX2 and portable paths give the same bits.
 std::vector<at::Tensor> occupied_samples(at::Tensor origins, at::Tensor dirs, at::Tensor t,
-                                            at::Tensor mask) {
+                                         at::Tensor mask) {
   for (const auto* x : {&origins, &dirs, &t})
     TORCH_CHECK(x->scalar_type() == at::kFloat && x->device().is_cpu(), "occupied_samples: float32 CPU tensors");
   TORCH_CHECK(mask.scalar_type() == at::kBool && mask.sizes() == t.sizes() && t.dim() == 2 &&
@@ -192,8 +192,8 @@ void composite_ray_avx2(const RayComposite& c, int64_t r, float* buf) {
 #endif
 
 std::vector<at::Tensor> composite_rays(at::Tensor h_sigma, at::Tensor h_color, at::Tensor flat,
-                                          at::Tensor starts, at::Tensor delta, at::Tensor background,
-                                          double max_h_sigma, bool vector_path) {
+                                       at::Tensor starts, at::Tensor delta, at::Tensor background,
+                                       double max_h_sigma, bool vector_path) {
   for (const auto* x : {&h_sigma, &h_color, &delta, &background})
     TORCH_CHECK(x->scalar_type() == at::kFloat && x->device().is_cpu(), "composite_rays: float32 CPU tensors");
   TORCH_CHECK(delta.dim() == 2 && starts.dim() == 1 && starts.size(0) == delta.size(0) + 1 &&

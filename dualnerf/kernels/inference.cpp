@@ -273,11 +273,11 @@ void field_mlps(const FieldMlps& m, const float* features, int64_t ld_features, 
 // a = f_S and b = f_D. Returns (h_sigma (M,), h_color (M, 3)); density_only: (h_sigma, an empty (0, 3)
 // tensor) without running the colour MLPs (sh then gives only its width: the colour MLP's SH inputs).
 std::vector<at::Tensor> field_inference(at::Tensor x, at::Tensor sh, std::vector<at::Tensor> dense_a,
-                                           std::vector<at::Tensor> planes_a, std::vector<at::Tensor> mlp_a,
-                                           std::vector<at::Tensor> dense_b, std::vector<at::Tensor> planes_b,
-                                           std::vector<at::Tensor> mlp_b, double w_density, double w_color,
-                                           std::vector<at::Tensor> interleaved, std::optional<at::Tensor> sh_index,
-                                           bool vector_path, bool bf16, bool amx, bool density_only) {
+                                        std::vector<at::Tensor> planes_a, std::vector<at::Tensor> mlp_a,
+                                        std::vector<at::Tensor> dense_b, std::vector<at::Tensor> planes_b,
+                                        std::vector<at::Tensor> mlp_b, double w_density, double w_color,
+                                        std::vector<at::Tensor> interleaved, std::optional<at::Tensor> sh_index,
+                                        bool vector_path, bool bf16, bool amx, bool density_only) {
   TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == at::kFloat, "x must be (M, 3) float32");
   const bool indexed = sh_index.has_value() && !density_only;
   TORCH_CHECK(sh.dim() == 2 && (indexed || density_only || sh.size(0) == x.size(0)) &&
@@ -424,7 +424,7 @@ void interleave_pair_into(std::vector<at::Tensor> out, std::vector<at::Tensor> d
 }
 
 std::vector<at::Tensor> interleave_pair(std::vector<at::Tensor> dense_a, std::vector<at::Tensor> planes_a,
-                                           std::vector<at::Tensor> dense_b, std::vector<at::Tensor> planes_b) {
+                                        std::vector<at::Tensor> dense_b, std::vector<at::Tensor> planes_b) {
   std::vector<at::Tensor> out;
   for (const auto& t : describe(dense_a, planes_a))
     out.push_back((dense_a.empty() ? planes_a : dense_a).front().new_empty({4 * table_cells(t)}));
@@ -435,7 +435,7 @@ std::vector<at::Tensor> interleave_pair(std::vector<at::Tensor> dense_a, std::ve
 // The MLPs alone on given features (the frozen f_S in a dual-field training step, whose look-ups the
 // pair kernel already did): (h_sigma (M,), h_color (M, 3)), as field_inference computes them.
 std::vector<at::Tensor> mlp_inference(at::Tensor features, at::Tensor sh, std::vector<at::Tensor> mlp,
-                                         bool vector_path) {
+                                      bool vector_path) {
   TORCH_CHECK(features.dim() == 2 && features.scalar_type() == at::kFloat && sh.dim() == 2 &&
                   sh.size(0) == features.size(0) && sh.scalar_type() == at::kFloat,
               "mlp_inference: (M, F) features and (M, S) sh, float32");

@@ -314,12 +314,12 @@ void lookup_range(const std::vector<Table>& tables, const std::vector<const floa
 
 // lookups.cpp
 at::Tensor encode_forward(at::Tensor x, std::vector<at::Tensor> dense, std::vector<at::Tensor> planes,
-                             bool vector_path);
+                          bool vector_path);
 std::vector<at::Tensor> encode_forward_pair(at::Tensor x, std::vector<at::Tensor> dense_a,
-                                               std::vector<at::Tensor> planes_a, std::vector<at::Tensor> dense_b,
-                                               std::vector<at::Tensor> planes_b, bool vector_path);
+                                            std::vector<at::Tensor> planes_a, std::vector<at::Tensor> dense_b,
+                                            std::vector<at::Tensor> planes_b, bool vector_path);
 std::vector<at::Tensor> encode_backward(at::Tensor x, at::Tensor grad_out, std::vector<at::Tensor> dense,
-                                           std::vector<at::Tensor> planes, bool vector_path);
+                                        std::vector<at::Tensor> planes, bool vector_path);
 void encode_backward_into(at::Tensor x, at::Tensor grad_out, std::vector<at::Tensor> dense,
                           std::vector<at::Tensor> planes, std::vector<at::Tensor> grads,
                           std::vector<at::Tensor> touched, bool vector_path);
@@ -327,30 +327,30 @@ void zero_touched(at::Tensor grad, at::Tensor touched);
 
 // inference.cpp
 std::vector<at::Tensor> field_inference(at::Tensor x, at::Tensor sh, std::vector<at::Tensor> dense_a,
-                                           std::vector<at::Tensor> planes_a, std::vector<at::Tensor> mlp_a,
-                                           std::vector<at::Tensor> dense_b, std::vector<at::Tensor> planes_b,
-                                           std::vector<at::Tensor> mlp_b, double w_density, double w_color,
-                                           std::vector<at::Tensor> interleaved, std::optional<at::Tensor> sh_index,
-                                           bool vector_path, bool bf16, bool amx, bool density_only);
+                                        std::vector<at::Tensor> planes_a, std::vector<at::Tensor> mlp_a,
+                                        std::vector<at::Tensor> dense_b, std::vector<at::Tensor> planes_b,
+                                        std::vector<at::Tensor> mlp_b, double w_density, double w_color,
+                                        std::vector<at::Tensor> interleaved, std::optional<at::Tensor> sh_index,
+                                        bool vector_path, bool bf16, bool amx, bool density_only);
 void interleave_pair_into(std::vector<at::Tensor> out, std::vector<at::Tensor> dense_a,
                           std::vector<at::Tensor> planes_a, std::vector<at::Tensor> dense_b,
                           std::vector<at::Tensor> planes_b, bool write_first);
 std::vector<at::Tensor> interleave_pair(std::vector<at::Tensor> dense_a, std::vector<at::Tensor> planes_a,
-                                           std::vector<at::Tensor> dense_b, std::vector<at::Tensor> planes_b);
+                                        std::vector<at::Tensor> dense_b, std::vector<at::Tensor> planes_b);
 std::vector<at::Tensor> mlp_inference(at::Tensor features, at::Tensor sh, std::vector<at::Tensor> mlp,
-                                         bool vector_path);
+                                      bool vector_path);
 bool vector_path_available();
 bool amx_path_available();
 
 // mlp_train.cpp
 std::vector<at::Tensor> mlp_train_forward(at::Tensor features, at::Tensor sh,
-                                             std::optional<at::Tensor> sh_index, std::vector<at::Tensor> mlp,
-                                             bool vector_path);
+                                          std::optional<at::Tensor> sh_index, std::vector<at::Tensor> mlp,
+                                          bool vector_path);
 std::vector<at::Tensor> mlp_train_backward(at::Tensor grad_sigma, at::Tensor grad_color,
-                                              at::Tensor features, at::Tensor hidden_density,
-                                              at::Tensor color_in, at::Tensor hidden_color,
-                                              std::vector<at::Tensor> mlp, std::vector<at::Tensor> weights,
-                                              int64_t n_sh, bool vector_path);
+                                           at::Tensor features, at::Tensor hidden_density,
+                                           at::Tensor color_in, at::Tensor hidden_color,
+                                           std::vector<at::Tensor> mlp, std::vector<at::Tensor> weights,
+                                           int64_t n_sh, bool vector_path);
 
 // adam.cpp
 void adam_step(at::Tensor param, at::Tensor grad, at::Tensor exp_avg, at::Tensor exp_avg_sq, double beta1,
@@ -361,13 +361,13 @@ void adam_step_touched(at::Tensor param, at::Tensor grad, at::Tensor touched, at
 
 // sampler.cpp
 std::vector<at::Tensor> ray_samples(at::Tensor origins, at::Tensor dirs, at::Tensor t_start,
-                                       at::Tensor t_end, at::Tensor density, at::Tensor mask, double scale,
-                                       int64_t n_proposal, int64_t n_samples, double uniform_share,
-                                       at::Tensor jitter, bool vector_path);
+                                    at::Tensor t_end, at::Tensor density, at::Tensor mask, double scale,
+                                    int64_t n_proposal, int64_t n_samples, double uniform_share,
+                                    at::Tensor jitter, bool vector_path);
 
 // composite.cpp
 std::vector<at::Tensor> occupied_samples(at::Tensor origins, at::Tensor dirs, at::Tensor t,
-                                            at::Tensor mask);
+                                         at::Tensor mask);
 std::vector<at::Tensor> composite_rays(at::Tensor h_sigma, at::Tensor h_color, at::Tensor flat,
-                                          at::Tensor starts, at::Tensor delta, at::Tensor background,
-                                          double max_h_sigma, bool vector_path);
+                                       at::Tensor starts, at::Tensor delta, at::Tensor background,
+                                       double max_h_sigma, bool vector_path);

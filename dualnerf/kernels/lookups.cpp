@@ -433,7 +433,7 @@ void dualnerf::lookup_range(const std::vector<Table>& tables, const std::vector<
 
 
 at::Tensor encode_forward(at::Tensor x, std::vector<at::Tensor> dense, std::vector<at::Tensor> planes,
-                             bool vector_path) {
+                          bool vector_path) {
   TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == at::kFloat, "x must be (M, 3) float32");
   x = x.contiguous();
   const auto tables = describe(dense, planes);
@@ -453,8 +453,8 @@ at::Tensor encode_forward(at::Tensor x, std::vector<at::Tensor> dense, std::vect
 }
 
 std::vector<at::Tensor> encode_forward_pair(at::Tensor x, std::vector<at::Tensor> dense_a,
-                                               std::vector<at::Tensor> planes_a, std::vector<at::Tensor> dense_b,
-                                               std::vector<at::Tensor> planes_b, bool vector_path) {
+                                            std::vector<at::Tensor> planes_a, std::vector<at::Tensor> dense_b,
+                                            std::vector<at::Tensor> planes_b, bool vector_path) {
   TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.scalar_type() == at::kFloat, "x must be (M, 3) float32");
   x = x.contiguous();
   const auto tables = describe(dense_a, planes_a);
@@ -552,7 +552,7 @@ struct BackwardInputs {
 };
 
 std::vector<at::Tensor> encode_backward(at::Tensor x, at::Tensor grad_out, std::vector<at::Tensor> dense,
-                                           std::vector<at::Tensor> planes, bool vector_path) {
+                                        std::vector<at::Tensor> planes, bool vector_path) {
   const BackwardInputs in(x, grad_out, dense, planes);
   const auto& tables = in.tables;
   // Gradients in the parameters' own shape, channels-last like the tables (the kernel's write order).

@@ -343,8 +343,8 @@ const float* sh_row(const float* sh, const int64_t* sh_index, int64_t i, int n_s
 // the MLPs' outputs and the activations mlp_train_backward reads. Row i's direction features are
 // sh[i], or sh[sh_index[i]] with an index (one row per ray).
 std::vector<at::Tensor> mlp_train_forward(at::Tensor features, at::Tensor sh,
-                                             std::optional<at::Tensor> sh_index, std::vector<at::Tensor> mlp,
-                                             bool vector_path) {
+                                          std::optional<at::Tensor> sh_index, std::vector<at::Tensor> mlp,
+                                          bool vector_path) {
   TORCH_CHECK(features.dim() == 2 && features.scalar_type() == at::kFloat && features.device().is_cpu() &&
                   sh.dim() == 2 && sh.scalar_type() == at::kFloat,
               "mlp_train_forward: (M, F) features and (M or R, S) sh, float32 CPU");
@@ -408,10 +408,10 @@ std::vector<at::Tensor> mlp_train_forward(at::Tensor features, at::Tensor sh,
 // mlp: the forward layout (as mlp_train_forward); weights: each layer's nn.Linear weight zero-padded to
 // (out, in_pad) (dx = dy W).
 std::vector<at::Tensor> mlp_train_backward(at::Tensor grad_sigma, at::Tensor grad_color,
-                                              at::Tensor features, at::Tensor hidden_density,
-                                              at::Tensor color_in, at::Tensor hidden_color,
-                                              std::vector<at::Tensor> mlp, std::vector<at::Tensor> weights,
-                                              int64_t n_sh, bool vector_path) {
+                                           at::Tensor features, at::Tensor hidden_density,
+                                           at::Tensor color_in, at::Tensor hidden_color,
+                                           std::vector<at::Tensor> mlp, std::vector<at::Tensor> weights,
+                                           int64_t n_sh, bool vector_path) {
   const int64_t m = features.size(0), n_features = features.size(1);
   const Mlp net = describe_train_mlp(mlp, n_features, n_sh);
   const Layer* l = net.layer;

@@ -293,9 +293,9 @@ void place_samples(const SamplerInputs& in, int64_t i, const float* pdf, const f
 }
 
 std::vector<at::Tensor> ray_samples(at::Tensor origins, at::Tensor dirs, at::Tensor t_start,
-                                       at::Tensor t_end, at::Tensor density, at::Tensor mask, double scale,
-                                       int64_t n_proposal, int64_t n_samples, double uniform_share,
-                                       at::Tensor jitter, bool vector_path) {
+                                    at::Tensor t_end, at::Tensor density, at::Tensor mask, double scale,
+                                    int64_t n_proposal, int64_t n_samples, double uniform_share,
+                                    at::Tensor jitter, bool vector_path) {
   for (const auto* x : {&origins, &dirs, &t_start, &t_end, &density})
     TORCH_CHECK(x->scalar_type() == at::kFloat && x->device().is_cpu(), "ray_samples: float32 CPU tensors expected");
   TORCH_CHECK(mask.scalar_type() == at::kBool && mask.sizes() == density.sizes(), "ray_samples: bool mask like density");
