@@ -48,6 +48,12 @@
 #define DUALNERF_HAVE_AVX2 1
 #endif
 
+// Before the loops over a register tile's rows and vectors: unrolled completely before GCC decides where
+// the accumulator array lives, so it stays in registers (without it GCC 12 stored all 12 accumulators to
+// the stack on every step of the AVX2 tiles, ~1.5x their time,
+// and in the AVX-512 weight-gradient tiles with masked loads).
+#define DUALNERF_UNROLL _Pragma("GCC unroll 16")
+
 namespace dualnerf {
 
 #ifdef DUALNERF_HAVE_AVX512
@@ -289,11 +295,6 @@ inline __m256 exp8(__m256 x) {
   const __m256i bits = _mm256_slli_epi32(_mm256_add_epi32(_mm256_cvtps_epi32(n), _mm256_set1_epi32(127)), 23);
   return _mm256_mul_ps(p, _mm256_castsi256_ps(bits));
 }
-
-// Before the loops over a register tile's rows and vectors: unrolled completely before GCC decides where
-// the accumulator array lives, so it stays in registers (without it GCC 12 stored all 12 accumulators to
-// the stack on every step of the AVX2 tiles, ~1.5x their time).
-#define DUALNERF_UNROLL _Pragma("GCC unroll 16")
 
 // The first `left` lanes of an 8-lane vector as all-ones (none for left <= 0): masked loads of row tails.
 inline __m256i first_lanes8(int64_t left) {

@@ -252,20 +252,29 @@ __attribute__((target("avx512f"))) inline void accumulate_by_inputs_tile_avx512(
                                                                                 const float* dy, int64_t ld_dy,
                                                                                 int64_t rows) {
   __m512 acc[JB][NV];
-  for (int j = 0; j < JB; ++j)
+  DUALNERF_UNROLL
+  for (int j = 0; j < JB; ++j) {
+    DUALNERF_UNROLL
     for (int v = 0; v < NV; ++v) acc[j][v] = _mm512_loadu_ps(gt + j * in_pad + kLanes * v);
+  }
   for (int64_t r = 0; r < rows; ++r) {
     __m512 xs[NV];
+    DUALNERF_UNROLL
     for (int v = 0; v < NV; ++v)
       xs[v] = kFullRows ? _mm512_loadu_ps(x + r * ld_x + kLanes * v)
                         : _mm512_maskz_loadu_ps(lanes[v], x + r * ld_x + kLanes * v);
+    DUALNERF_UNROLL
     for (int j = 0; j < JB; ++j) {
       const __m512 d = _mm512_set1_ps(dy[r * ld_dy + j]);
+      DUALNERF_UNROLL
       for (int v = 0; v < NV; ++v) acc[j][v] = _mm512_fmadd_ps(xs[v], d, acc[j][v]);
     }
   }
-  for (int j = 0; j < JB; ++j)
+  DUALNERF_UNROLL
+  for (int j = 0; j < JB; ++j) {
+    DUALNERF_UNROLL
     for (int v = 0; v < NV; ++v) _mm512_storeu_ps(gt + j * in_pad + kLanes * v, acc[j][v]);
+  }
 }
 
 template <int NV>
@@ -276,7 +285,8 @@ __attribute__((target("avx512f"))) void accumulate_by_inputs_avx512(float* gt, f
   constexpr int JB = NV >= 4 ? 4 : 8;
   __mmask16 lanes[NV];
   for (int v = 0; v < NV; ++v) lanes[v] = first_lanes(in - kLanes * v);
-  // Rows without padding load whole vectors (no masks: with them GCC kept the accumulators in memory).
+  // Rows without padding load whole vectors, without masks (before DUALNERF_UNROLL the masked tiles also
+  // kept their accumulators in memory; benchmarks/kernel_spills.py shows both in registers now).
   auto tiles = [&](auto full) {
     constexpr bool kFull = decltype(full)::value;
     int j = 0;
