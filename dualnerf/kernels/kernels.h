@@ -49,9 +49,9 @@
 #endif
 
 // Before the loops over a register tile's rows and vectors: unrolled completely before GCC decides where
-// the accumulator array lives, so it stays in registers (without it GCC 12 stored all 12 accumulators to
-// the stack on every step of the AVX2 tiles, ~1.5x their time,
-// and in the AVX-512 weight-gradient tiles with masked loads).
+// the accumulator array lives, so it stays in registers. Without it GCC 12 moved the accumulators through
+// the stack on every step of the AVX2 tiles (~1.5x their time) and of the AVX-512 weight-gradient tiles
+// with masked loads (benchmarks/profile_registers.py lists such loops).
 #define DUALNERF_UNROLL _Pragma("GCC unroll 16")
 
 namespace dualnerf {
