@@ -75,6 +75,36 @@ def test_field_inference_single_and_dual(precision, monkeypatch):
                         monkeypatch)
 
 
+# Tables over the look-ups' prefetch threshold (lookups.cpp kPrefetchTableBytes, 512 KB): a 48^3 grid and
+# 320^2 planes of 2 floats (864 KB, 800 KB), so the AVX2 path sweeps them before it gathers.
+SWEPT = FieldConfig(grid_resolutions=(8, 48), plane_resolutions=(320,), hidden_width=64)
+
+
+def test_look_ups_of_swept_tables_single_pair_and_interleaved(monkeypatch):
+    a, b = (RadianceField(SWEPT, torch.Generator().manual_seed(seed)) for seed in (0, 5))
+    with torch.no_grad():
+        for model, seed in ((a, 1), (b, 6)):
+            for p in model.parameters():
+                p.add_(torch.randn(p.shape, generator=torch.Generator().manual_seed(seed)) * 0.3)
+    sizes = [t.numel() * 4 for t in (*a.grid_tables()[0], *a.grid_tables()[1])]
+    assert max(sizes) > 512 * 1024 and min(sizes) < 512 * 1024, sizes     # swept and unswept tables
+    x = points(2053, seed=4)
+    sh = a.direction_features(torch.nn.functional.normalize(points(2053, seed=8), dim=-1))
+    module = kernels.grid_kernel()
+    pair = same_everywhere(lambda: module.encode_forward_pair(x, *a.grid_tables(), *b.grid_tables(),
+                                                              kernels.vector_path()), monkeypatch)
+    single = same_everywhere(lambda: module.encode_forward(x, *a.grid_tables(), kernels.vector_path()), monkeypatch)
+    assert torch.equal(pair[0], single[0])
+    interleaved = kernels.interleave_pair(a.grid_tables(), b.grid_tables())
+    with torch.no_grad():
+        dual = same_everywhere(lambda: kernels.field_inference(x, sh, a.grid_tables(), a.mlp_layers(),
+                                                               second=(b.grid_tables(), b.mlp_layers()),
+                                                               blend=(0.3, 0.1), interleaved=interleaved), monkeypatch)
+        apart = kernels.field_inference(x, sh, a.grid_tables(), a.mlp_layers(),
+                                        second=(b.grid_tables(), b.mlp_layers()), blend=(0.3, 0.1))
+    assert all(torch.equal(got, want) for got, want in zip(dual, apart))
+
+
 # The training kernel's weight-gradient tiles: 64 wide with 15 geometry features (the fields' layout: the
 # density output's 16 and the colour output's 3 summed by inputs, unmasked), and 24 wide with 6 (inputs
 # padded to 32, so masked loads, and 7 outputs: the tiles' remainders).
