@@ -2,6 +2,7 @@
 
     profile_revision(revision, module, argv) -> text printed by that commit's `python -m <module> <argv>`
     parse_edit_profile(text) -> {variant: {"iteration_ms", "step_ms", "update_ms"}, "dual_over_single"}
+    parse_render_cache_profile(text) -> {"f_S" | "dual": (fitted tables s, cache-sized s)}
 
 The commit is checked out into a temporary git worktree (the repository's history must hold it; a
 shallow clone may not) and run with this environment's Python and packages: its own sources, its own
@@ -63,3 +64,11 @@ def parse_edit_profile(text: str) -> dict:
         elif line.startswith("dual / single loop time:"):
             out["dual_over_single"] = float(line.split(":")[1])
     return out
+
+
+_CACHE_ROW = re.compile(r"^\s*(?P<label>f_S|dual)\s+(?P<fitted>[\d.]+)\s+(?P<cached>[\d.]+)\s+-?\d+%\s*$")
+
+
+def parse_render_cache_profile(text: str) -> dict[str, tuple[float, float]]:
+    """The table rows of benchmarks.profile_render_cache's output (every version prints them)."""
+    return {m["label"]: (float(m["fitted"]), float(m["cached"])) for m in map(_CACHE_ROW.match, text.splitlines()) if m}

@@ -1,8 +1,14 @@
-"""benchmarks.revision: the before/after harness of benchmarks.profile_edit (parsing what every version of
-the profile prints, and a clear refusal for a commit the history lacks)."""
+"""benchmarks.revision: the before/after harness of benchmarks.profile_edit and profile_render_cache
+(parsing what every version of the profiles prints, and a clear refusal for a commit the history lacks)."""
 import pytest
 
-from benchmarks.revision import RevisionUnavailable, parse_edit_profile, profile_revision
+from benchmarks.profile_render_cache import format_table
+from benchmarks.revision import (
+    RevisionUnavailable,
+    parse_edit_profile,
+    parse_render_cache_profile,
+    profile_revision,
+)
 
 # benchmarks.profile_edit's summary lines as printed at 25ad900 and since (abridged: phase rows elided).
 PRINTED = """\
@@ -33,3 +39,21 @@ def test_the_summary_lines_of_a_profile_are_read_per_variant():
 def test_a_revision_the_history_lacks_is_refused_with_its_name():
     with pytest.raises(RevisionUnavailable, match="0000000000000000000000000000000000000bad"):
         profile_revision("0000000000000000000000000000000000000bad", "benchmarks.profile_edit", [])
+
+
+# benchmarks.profile_render_cache's output as printed at e4fcf92 (before --compare existed).
+RENDER_CACHE_PRINTED = """\
+cores: 2, kernel threads: 1 (torch: 1), load 0.67; timings include other load
+f_S from /tmp/dualnerf-profile-edit/campsite-600
+campsite 256x192: 2.25M samples in 6 kernel calls, replayed 5x
+     model  fitted tables s  cache-sized s  misses share
+       f_S            1.426          0.749           47%
+      dual            2.498          1.658           34%
+"""
+
+
+def test_the_render_cache_table_is_read_per_model_and_round_trips():
+    parsed = parse_render_cache_profile(RENDER_CACHE_PRINTED)
+    assert parsed == {"f_S": (1.426, 0.749), "dual": (2.498, 1.658)}
+    assert parse_render_cache_profile(format_table(parsed)) == parsed
+    assert parse_render_cache_profile("campsite 256x192: 2.25M samples in 6 kernel calls") == {}
