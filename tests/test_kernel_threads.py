@@ -17,8 +17,8 @@ CONFIG = FieldConfig(grid_resolutions=(8, 16, 32), plane_resolutions=(32, 64), h
 THREADS = (1, 2, 3, 4)
 
 
-def field(seed):
-    model = RadianceField(CONFIG, torch.Generator().manual_seed(seed))
+def field(seed, config=CONFIG):
+    model = RadianceField(config, torch.Generator().manual_seed(seed))
     with torch.no_grad():                      # non-trivial tables (they start near zero)
         for p in model.parameters():
             p.add_(torch.randn(p.shape, generator=torch.Generator().manual_seed(seed + 1)) * 0.3)
@@ -81,11 +81,7 @@ SWEPT = FieldConfig(grid_resolutions=(8, 48), plane_resolutions=(320,), hidden_w
 
 
 def test_look_ups_of_swept_tables_single_pair_and_interleaved(monkeypatch):
-    a, b = (RadianceField(SWEPT, torch.Generator().manual_seed(seed)) for seed in (0, 5))
-    with torch.no_grad():
-        for model, seed in ((a, 1), (b, 6)):
-            for p in model.parameters():
-                p.add_(torch.randn(p.shape, generator=torch.Generator().manual_seed(seed)) * 0.3)
+    a, b = field(0, SWEPT), field(5, SWEPT)
     sizes = [t.numel() * 4 for t in (*a.grid_tables()[0], *a.grid_tables()[1])]
     assert max(sizes) > 512 * 1024 and min(sizes) < 512 * 1024, sizes     # swept and unswept tables
     x = points(2053, seed=4)
