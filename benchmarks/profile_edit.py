@@ -242,8 +242,9 @@ def _print(result) -> None:
             unit = f"{1000 * seconds / n_up:.0f} ms/upd"
         else:
             unit = f"{1000 * seconds:.0f} ms"
-        share = seconds / result["total"] if name.startswith(("step", "update")) else float("nan")
-        print(f"  {name:48s} {seconds:8.2f} {share:6.1%} {unit:>12s}")
+        # One-off phases (checkpoint I/O, set-up) are outside the loop: no share of it.
+        share = f"{seconds / result['total']:6.1%}" if name.startswith(("step", "update")) else f"{'-':>6s}"
+        print(f"  {name:48s} {seconds:8.2f} {share} {unit:>12s}")
     per = {}
     for part in ("step", "update"):
         part_total = sum(s for n, s in timer.seconds.items() if n.startswith(part))
@@ -320,9 +321,14 @@ def _compare(args, results) -> None:
             was = old.get(key)
             ratio = f"{new / was:13.2f}" if was else f"{'-':>13s}"
             print(f"  {result['label'] + ': ' + name if key == 'iteration_ms' else '    ' + name:46s} "
-                  f"{was if was is not None else float('nan'):9.0f} {new:9.0f} {ratio}")
+                  f"{_cell(was, '9.0f')} {new:9.0f} {ratio}")
     now = results[0]["total"] / results[1]["total"]
-    print(f"  {'dual / single':46s} {before.get('dual_over_single', float('nan')):9.2f} {now:9.2f}")
+    print(f"  {'dual / single':46s} {_cell(before.get('dual_over_single'), '9.2f')} {now:9.2f}")
+
+
+def _cell(value: float | None, spec: str) -> str:
+    """A table cell: the value, or '-' where the earlier commit did not print it."""
+    return format(value, spec) if value is not None else "-".rjust(int(spec.split(".")[0]))
 
 
 if __name__ == "__main__":
