@@ -243,8 +243,8 @@ def _print(result) -> None:
         else:
             unit = f"{1000 * seconds:.0f} ms"
         # One-off phases (checkpoint I/O, set-up) are outside the loop: no share of it.
-        share = f"{seconds / result['total']:6.1%}" if name.startswith(("step", "update")) else f"{'-':>6s}"
-        print(f"  {name:48s} {seconds:8.2f} {share} {unit:>12s}")
+        share = seconds / result["total"] if name.startswith(("step", "update")) else None
+        print(f"  {name:48s} {seconds:8.2f} {_cell(share, '6.1%')} {unit:>12s}")
     per = {}
     for part in ("step", "update"):
         part_total = sum(s for n, s in timer.seconds.items() if n.startswith(part))
@@ -327,7 +327,8 @@ def _compare(args, results) -> None:
 
 
 def _cell(value: float | None, spec: str) -> str:
-    """A table cell: the value, or '-' where the earlier commit did not print it."""
+    """A table cell: the value, or '-' where there is none (a one-off phase's share of the loop, a figure
+    the earlier commit did not print)."""
     return format(value, spec) if value is not None else "-".rjust(int(spec.split(".")[0]))
 
 
